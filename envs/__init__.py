@@ -1,0 +1,1 @@
+"""Fetch tasks on device (installed as ``rdher_jax.envs``)."""
