@@ -1,0 +1,206 @@
+"""The four Fetch tasks, written once in JAX over a small physics interface.
+
+What makes FetchPush FetchPush (reset sampling, action -> mocap target, observation, reward,
+success, 50-step truncation) lives here; the ``mujoco`` and ``mjx`` backends only say how to
+reset and step the physics and return the raw readout (``physics.RAW_FIELDS``).
+
+The API has the MuJoCo Playground shape: ``reset(key) -> State``, ``step(state, action) ->
+State``, both pure and vmappable.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from .physics import RAW_SLICES, Setup
+
+EPISODE_LENGTH = 50
+_EPS4 = np.finfo(np.float64).eps * 4.0
+
+
+@struct.dataclass
+class State:
+    """One env's state; every field gets a leading axis under ``jax.vmap``.
+
+    Attributes:
+      data: the backend's physics state (``mjx.Data`` or ``native.NativeState``).
+      obs: ``observation``, ``achieved_goal``, ``desired_goal``.
+      reward: sparse reward of the last step, -(||achieved - desired|| > 0.05).
+      done: True on the step that ends an episode. Fetch episodes are truncated at T = 50,
+        never terminated, so learners must still bootstrap through it.
+      metrics: scalars for logging.
+      info: ``is_success``, ``t`` (steps taken in this episode), ``goal``, ``rng``; with
+        auto-reset also ``final_obs``, the observation the episode ended on.
+    """
+
+    data: Any
+    obs: dict
+    reward: jax.Array
+    done: jax.Array
+    metrics: dict = struct.field(default_factory=dict)
+    info: dict = struct.field(default_factory=dict)
+
+
+def goal_distance(a: jax.Array, b: jax.Array) -> jax.Array:
+    return jnp.linalg.norm(a - b, axis=-1)
+
+
+def mat2euler(mat: jax.Array) -> jax.Array:
+    """gymnasium_robotics.utils.rotations.mat2euler, for (..., 3, 3) matrices."""
+    cy = jnp.sqrt(mat[..., 2, 2] * mat[..., 2, 2] + mat[..., 1, 2] * mat[..., 1, 2])
+    cond = cy > _EPS4
+    z = jnp.where(cond, -jnp.arctan2(mat[..., 0, 1], mat[..., 0, 0]),
+                  -jnp.arctan2(-mat[..., 1, 0], mat[..., 1, 1]))
+    y = -jnp.arctan2(-mat[..., 0, 2], cy)
+    x = jnp.where(cond, -jnp.arctan2(mat[..., 1, 2], mat[..., 2, 2]), 0.0)
+    return jnp.stack([x, y, z], axis=-1)
+
+
+class FetchEnv:
+    """A Fetch task over a physics backend. Build it with ``rdher_jax.make_env``."""
+
+    def __init__(self, setup: Setup, backend, auto_reset: bool = True):
+        self.setup = setup
+        self.spec = setup.spec
+        self.backend = backend
+        self.auto_reset = auto_reset
+        self.name = self.spec.name
+        self.episode_length = EPISODE_LENGTH
+        self.dt = setup.dt
+        self.distance_threshold = self.spec.distance_threshold
+        self.obs_size = 25 if self.spec.has_object else 10
+        self.goal_size = 3
+        self.action_size = 4
+        self._init_qpos = jnp.asarray(setup.init_qpos, jnp.float32)
+        self._init_qvel = jnp.asarray(setup.init_qvel, jnp.float32)
+        self._grip0 = jnp.asarray(setup.initial_gripper_xpos, jnp.float32)
+
+    def __repr__(self) -> str:
+        return f"FetchEnv({self.name}, backend={self.backend.name}, scene={self.setup.variant})"
+
+    # ------------------------------------------------------------------ goals and rewards
+    def compute_reward(self, achieved_goal: jax.Array, desired_goal: jax.Array) -> jax.Array:
+        """Sparse reward, pure and vmappable: the function relabelling calls."""
+        d = goal_distance(achieved_goal, desired_goal)
+        return -(d > self.distance_threshold).astype(jnp.float32)
+
+    def is_success(self, achieved_goal: jax.Array, desired_goal: jax.Array) -> jax.Array:
+        d = goal_distance(achieved_goal, desired_goal)
+        return (d < self.distance_threshold).astype(jnp.float32)
+
+    def sample_goal(self, key: jax.Array) -> jax.Array:
+        s = self.spec
+        k1, k2, k3 = jax.random.split(key, 3)
+        goal = self._grip0 + jax.random.uniform(k1, (3,), minval=-s.target_range,
+                                                maxval=s.target_range)
+        if s.has_object:
+            goal = goal + jnp.asarray(s.target_offset, jnp.float32)
+            goal = goal.at[2].set(self.setup.height_offset)
+            if s.target_in_the_air:
+                lift = jax.random.uniform(k3, (), minval=0.0, maxval=0.45)
+                goal = goal.at[2].add(jnp.where(jax.random.uniform(k2) < 0.5, lift, 0.0))
+        return goal
+
+    def sample_object_xy(self, key: jax.Array) -> jax.Array:
+        """Object xy within obj_range of the gripper and at least 0.1 m from it (rejection)."""
+        r = self.spec.obj_range
+        grip = self._grip0[:2]
+
+        def cond(c):
+            return jnp.linalg.norm(c[1] - grip) < 0.1
+
+        def body(c):
+            k, _ = c
+            k, sub = jax.random.split(k)
+            return k, grip + jax.random.uniform(sub, (2,), minval=-r, maxval=r)
+
+        return jax.lax.while_loop(cond, body, (key, grip))[1]
+
+    # ------------------------------------------------------------------ observation
+    def _obs(self, raw: jax.Array, goal: jax.Array) -> dict:
+        def f(name):
+            return raw[..., RAW_SLICES[name]]
+
+        dt = self.dt
+        grip_pos = f("grip_pos")
+        grip_velp = f("grip_velp") * dt
+        finger_qpos, finger_vel = f("finger_qpos"), f("finger_qvel") * dt
+        if self.spec.has_object:
+            obj_pos = f("obj_pos")
+            obj_rot = mat2euler(f("obj_xmat").reshape(raw.shape[:-1] + (3, 3)))
+            obj_velp = f("obj_velp") * dt - grip_velp
+            obj_velr = f("obj_velr") * dt
+            obs = jnp.concatenate([grip_pos, obj_pos, obj_pos - grip_pos, finger_qpos, obj_rot,
+                                   obj_velp, obj_velr, grip_velp, finger_vel], axis=-1)
+            achieved = obj_pos
+        else:
+            obs = jnp.concatenate([grip_pos, finger_qpos, grip_velp, finger_vel], axis=-1)
+            achieved = grip_pos
+        return {"observation": obs, "achieved_goal": achieved, "desired_goal": goal}
+
+    def _state(self, data, raw, goal, t, rng, reward=None) -> State:
+        obs = self._obs(raw, goal)
+        success = self.is_success(obs["achieved_goal"], goal)
+        if reward is None:
+            reward = jnp.zeros((), jnp.float32)
+        return State(
+            data=data,
+            obs=obs,
+            reward=reward,
+            done=t >= self.episode_length,
+            metrics={"success": success},
+            info={"is_success": success, "t": t, "goal": goal, "rng": rng},
+        )
+
+    # ------------------------------------------------------------------ API
+    def reset(self, key: jax.Array) -> State:
+        """A fresh episode: new object position (object tasks) and goal."""
+        k_obj, k_goal, k_next = jax.random.split(key, 3)
+        qpos = self._init_qpos
+        if self.spec.has_object:
+            a = self.setup.object_qposadr
+            qpos = qpos.at[a : a + 2].set(self.sample_object_xy(k_obj))
+        return self._reset_physics(qpos, self._init_qvel, self.sample_goal(k_goal), k_next)
+
+    def reset_to(self, qpos: jax.Array, qvel: jax.Array, goal: jax.Array,
+                 key: jax.Array | None = None) -> State:
+        """Start an episode from a MuJoCo state in the gymnasium-robotics model's layout."""
+        key = jax.random.PRNGKey(0) if key is None else key
+        return self._reset_physics(jnp.asarray(qpos, jnp.float32),
+                                   jnp.asarray(qvel, jnp.float32),
+                                   jnp.asarray(goal, jnp.float32), key)
+
+    def _reset_physics(self, qpos, qvel, goal, rng) -> State:
+        data, raw = self.backend.reset(qpos, qvel)
+        state = self._state(data, raw, goal, jnp.zeros((), jnp.int32), rng)
+        if self.auto_reset:
+            state.info["final_obs"] = state.obs
+        return state
+
+    def step(self, state: State, action: jax.Array) -> State:
+        """Clip the action, move the mocap target by 0.05 * a[:3], command the fingers
+        (PickAndPlace) and advance 20 substeps. With auto-reset, a state whose episode just
+        ended is replaced by a fresh episode, and ``info["final_obs"]`` keeps the last one."""
+        a = jnp.clip(action, -1.0, 1.0)
+        delta = a[..., :3] * jnp.float32(0.05)
+        grip = a[..., 3] if not self.spec.block_gripper else jnp.zeros_like(a[..., 3])
+        data, raw = self.backend.step(state.data, delta, grip)
+        goal = state.info["goal"]
+        t = state.info["t"] + 1
+        obs = self._obs(raw, goal)
+        reward = self.compute_reward(obs["achieved_goal"], goal)
+        new = self._state(data, raw, goal, t, state.info["rng"], reward)
+        if not self.auto_reset:
+            return new
+        new.info["final_obs"] = new.obs
+        fresh = self.reset(state.info["rng"])
+        fresh = fresh.replace(reward=new.reward, done=new.done,
+                              metrics=new.metrics,
+                              info={**fresh.info, "is_success": new.info["is_success"],
+                                    "final_obs": new.obs})
+        return jax.tree.map(lambda x, y: jnp.where(new.done, x, y), fresh, new)
