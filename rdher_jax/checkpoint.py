@@ -1,0 +1,276 @@
+"""Orbax checkpoints of a run: the latest training state and the best policy.
+
+Layout under ``<run_dir>/checkpoints``::
+
+    latest/<epoch>/{state,meta}   full training state (networks, optimisers, replay buffer, keys)
+    best/<epoch>/{state,meta}     the policy of the best test epoch so far
+
+Each directory keeps one step. Orbax writes a step into ``<epoch>.orbax-checkpoint-tmp-<t>``
+and renames it to ``<epoch>`` once complete (atomic on POSIX), so an integer-named directory is
+always a finished save. A process killed mid-save leaves only a temporary directory, which is
+ignored on restore and removed by the next writer; the previous step stays restorable.
+"""
+
+import contextlib
+import json
+import shutil
+import uuid
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+import orbax.checkpoint as ocp
+from orbax.checkpoint import checkpoint_managers
+
+from rdher_jax.runlog import json_default
+
+_TMP_MARK = ".orbax-checkpoint-tmp"
+_TRASH_PREFIX = ".deleting-"
+
+
+class CheckpointError(RuntimeError):
+    """A checkpoint is missing or does not fit the requested template (one-line message)."""
+
+    def __init__(self, msg: str) -> None:
+        super().__init__(" ".join(str(msg).split()))
+
+
+def _remove(path: Path) -> None:
+    """Delete a directory so that a kill midway never leaves a half-deleted step behind.
+
+    The rename is atomic; the slow rmtree then only ever sees a name that is no step.
+    """
+    trash = path.with_name(f"{_TRASH_PREFIX}{path.name}-{uuid.uuid4().hex[:8]}")
+    path.rename(trash)
+    shutil.rmtree(trash, ignore_errors=True)
+
+
+def _step_dirs(directory: Path) -> dict[int, Path]:
+    return {int(p.name): p for p in directory.iterdir() if p.is_dir() and p.name.isdigit()}
+
+
+def _tidy(directory: Path) -> None:
+    """Remove unfinished saves, interrupted deletions and steps older than the newest.
+
+    Orbax deletes an old step only after the new one is renamed into place, so the highest
+    integer-named step is complete and any lower one is a leftover of an interrupted deletion.
+    """
+    for p in directory.iterdir():
+        if p.name.startswith(_TRASH_PREFIX) or _TMP_MARK in p.name:
+            shutil.rmtree(p, ignore_errors=True)
+    steps = _step_dirs(directory)
+    for step in sorted(steps)[:-1]:
+        _remove(steps[step])
+
+
+def _key_str(k: Any) -> str:
+    for attr in ("name", "key", "idx"):  # GetAttrKey, DictKey/FlattenedIndexKey, SequenceKey
+        if hasattr(k, attr):
+            return str(getattr(k, attr))
+    return str(k)
+
+
+def _path_str(path: tuple) -> str:
+    return ".".join(_key_str(k) for k in path) or "<root>"
+
+
+def _template_spec(leaf: Any) -> tuple[tuple[int, ...], np.dtype | None]:
+    dtype = getattr(leaf, "dtype", None)
+    if dtype is not None and jax.dtypes.issubdtype(dtype, jax.dtypes.prng_key):
+        # Typed PRNG keys are stored as their raw uint32 key data.
+        data = jax.eval_shape(jax.random.key_data, leaf)
+        return tuple(data.shape), np.dtype(data.dtype)
+    shape = tuple(getattr(leaf, "shape", np.shape(leaf)))
+    # Python scalars carry no dtype of their own; only their shape () is checked.
+    return shape, None if dtype is None else np.dtype(dtype)
+
+
+def _mismatches(saved: Any, template: Any) -> list[str]:
+    """Human-readable differences between checkpoint metadata and a restore template."""
+    is_meta = lambda x: hasattr(x, "shape") and hasattr(x, "dtype")  # ArrayMetadata & co.
+    have = {
+        _path_str(p): (tuple(m.shape), m.dtype)
+        for p, m in jax.tree_util.tree_flatten_with_path(saved, is_leaf=is_meta)[0]
+    }
+    want = {
+        _path_str(p): _template_spec(leaf)
+        for p, leaf in jax.tree_util.tree_flatten_with_path(template)[0]
+    }
+    # Structural differences first: they explain any shape differences that follow.
+    out = [f"{k} missing from the checkpoint" for k in sorted(want) if k not in have]
+    out += [f"{k} in the checkpoint but not in the template" for k in sorted(have) if k not in want]
+    for k in sorted(want.keys() & have.keys()):
+        (ws, wd), (hs, hd) = want[k], have[k]
+        if ws != hs:
+            out.append(f"{k} has shape {hs} in the checkpoint but {ws} in the template")
+        elif wd is not None and hd is not None and np.dtype(hd) != wd:
+            out.append(f"{k} has dtype {np.dtype(hd)} in the checkpoint but {wd} in the template")
+    return out
+
+
+def _arrays(tree: Any) -> Any:
+    """numpy scalars (np.float32(1), np.int64(5)) as 0-d arrays, which orbax accepts."""
+    return jax.tree_util.tree_map(lambda x: np.asarray(x) if isinstance(x, np.generic) else x, tree)
+
+
+class _Slot:
+    """One checkpoint directory holding a single step (``latest`` or ``best``)."""
+
+    def __init__(self, directory: Path, read_only: bool) -> None:
+        self.directory = directory
+        self.read_only = read_only
+        if not read_only:
+            directory.mkdir(parents=True, exist_ok=True)
+            _tidy(directory)
+        self._mgr: ocp.CheckpointManager | None = None
+
+    @property
+    def mgr(self) -> ocp.CheckpointManager:
+        # Created lazily: a read-only slot may not exist yet, and orbax would refuse it.
+        if self._mgr is None:
+            options = ocp.CheckpointManagerOptions(
+                preservation_policy=checkpoint_managers.LatestN(n=1),
+                enable_async_checkpointing=False,  # "saved" must mean "on disk"
+                # Read-only is enforced here rather than with orbax's read_only option,
+                # which logs warnings on every open.
+                create=not self.read_only,
+                cleanup_tmp_directories=False,  # _tidy did it, synchronously
+            )
+            self._mgr = ocp.CheckpointManager(
+                self.directory.absolute(),
+                options=options,
+                item_handlers={
+                    "state": ocp.StandardCheckpointHandler(),
+                    "meta": ocp.JsonCheckpointHandler(),
+                },
+            )
+        return self._mgr
+
+    def latest(self) -> int | None:
+        if not self.directory.is_dir():
+            return None
+        if self.read_only:
+            self.mgr.reload()  # another process may be writing this run
+        return self.mgr.latest_step()
+
+    def _check_writable(self) -> None:
+        if self.read_only:
+            raise CheckpointError(f"{self.directory} was opened read-only")
+
+    def save(self, step: int, tree: Any, meta: Mapping[str, Any]) -> None:
+        self._check_writable()
+        meta = json.loads(json.dumps(dict(meta), default=json_default))
+        # Steps at or after `step` come from a timeline abandoned by a resume; orbax would
+        # silently skip saving an existing or older step, so they go first.
+        stale = [s for s in self.mgr.all_steps() if s >= step]
+        for s in stale:
+            _remove(self.directory / str(s))
+        if stale:
+            self.mgr.reload()
+        args = ocp.args.Composite(
+            state=ocp.args.StandardSave(_arrays(tree)), meta=ocp.args.JsonSave(meta)
+        )
+        saved = self.mgr.save(step, args=args, force=True)
+        self.mgr.wait_until_finished()
+        if not saved or not (self.directory / str(step)).is_dir():
+            raise CheckpointError(f"orbax did not write step {step} to {self.directory}")
+
+    def meta(self, step: int | None = None) -> tuple[int, dict] | None:
+        step = self.latest() if step is None else step
+        if step is None:
+            return None
+        restored = self.mgr.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))
+        return step, dict(restored.meta)
+
+    def restore(self, template: Any) -> tuple[int, Any, dict]:
+        step = self.latest()
+        if step is None:
+            raise CheckpointError(f"no checkpoint in {self.directory}")
+        template = _arrays(template)
+        if template is not None:
+            saved = self.mgr.item_metadata(step)["state"]
+            saved = getattr(saved, "tree", saved)
+            diff = _mismatches(saved, template)
+            if diff:
+                more = f" (and {len(diff) - 1} more)" if len(diff) > 1 else ""
+                raise CheckpointError(
+                    f"checkpoint {self.directory / str(step)} does not fit the template: "
+                    f"{diff[0]}{more}"
+                )
+        state_args = ocp.args.StandardRestore(template)
+        restored = self.mgr.restore(
+            step, args=ocp.args.Composite(state=state_args, meta=ocp.args.JsonRestore())
+        )
+        return step, restored.state, dict(restored.meta or {})
+
+    def close(self) -> None:
+        if self._mgr is not None:
+            self._mgr.close()
+            self._mgr = None
+
+
+class Checkpointer:
+    """Latest training state and best policy of one run, under ``<run_dir>/checkpoints``.
+
+    Saves are synchronous: when ``save_*`` returns, the step is renamed into place on disk.
+    ``read_only=True`` is for readers of a run that may still be training (evaluation,
+    plotting): they never delete anything, including the writer's in-progress saves.
+    """
+
+    def __init__(self, run_dir: str | Path, read_only: bool = False) -> None:
+        self.directory = Path(run_dir) / "checkpoints"
+        self._latest = _Slot(self.directory / "latest", read_only)
+        self._best = _Slot(self.directory / "best", read_only)
+
+    def save_latest(self, epoch: int, state: Any, meta: Mapping[str, Any]) -> None:
+        """Save the full training state after ``epoch``, replacing the previous one."""
+        self._latest.save(epoch, state, meta)
+
+    def save_best(self, epoch: int, policy: Any, meta: Mapping[str, Any]) -> None:
+        """Save the policy of a new best epoch, replacing the previous best."""
+        self._best.save(epoch, policy, meta)
+
+    def latest_epoch(self) -> int | None:
+        """Epoch of the latest complete checkpoint, or None."""
+        return self._latest.latest()
+
+    def best_epoch(self) -> int | None:
+        """Epoch of the best-policy checkpoint, or None."""
+        return self._best.latest()
+
+    def best_meta(self) -> dict | None:
+        """Metadata saved with the best policy (e.g. its test success), or None."""
+        found = self._best.meta()
+        return None if found is None else found[1]
+
+    def restore_latest(self, template: Any) -> tuple[int, Any, dict]:
+        """``(epoch, state, meta)`` of the latest checkpoint, restored into ``template``'s
+        structure, shapes and dtypes (a mismatch raises CheckpointError)."""
+        return self._latest.restore(template)
+
+    def restore_best(self, template: Any) -> tuple[int, Any, dict]:
+        """``(epoch, policy, meta)`` of the best checkpoint, like :meth:`restore_latest`."""
+        return self._best.restore(template)
+
+    def discard_after(self, epoch: int) -> None:
+        """Delete checkpoints newer than ``epoch`` (a resume from ``epoch`` abandons them)."""
+        for slot in (self._latest, self._best):
+            slot._check_writable()
+            step = slot.latest()
+            if step is not None and step > epoch:
+                _remove(slot.directory / str(step))
+                slot.mgr.reload()
+
+    def close(self) -> None:
+        """Release orbax's resources; the object may be used again afterwards."""
+        self._latest.close()
+        self._best.close()
+
+    def __enter__(self) -> "Checkpointer":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        with contextlib.suppress(Exception):
+            self.close()

@@ -1,0 +1,350 @@
+"""Run configuration: a frozen dataclass, ``key=value`` command-line overrides and YAML I/O.
+
+The dataclass is used as an OmegaConf structured config, so overrides are parsed and typed by
+OmegaConf; range checks that OmegaConf cannot express live in :func:`validate`. Every user error
+is raised as :class:`ConfigError` with a one-line message, which :func:`main_guard` turns into
+``error: <msg>`` on stderr and exit status 2.
+"""
+
+import dataclasses
+import datetime
+import difflib
+import functools
+import math
+import sys
+import textwrap
+import types
+import typing
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TypeVar
+
+from omegaconf import OmegaConf
+from omegaconf.errors import ConfigKeyError, OmegaConfBaseException
+
+# Kept equal to the env package's own list; a test checks that they agree once both exist.
+ENV_NAMES: tuple[str, ...] = ("FetchReach", "FetchPush", "FetchSlide", "FetchPickAndPlace")
+ALGO_NAMES: tuple[str, ...] = ("ddpg", "her")
+BACKENDS: tuple[str, ...] = ("auto", "mujoco", "mjx")
+SCENES: tuple[str, ...] = ("auto", "original", "mjx")
+
+# Every Fetch task has 50-step episodes; gamma defaults to 1 - 1/T as in baselines' HER.
+DEFAULT_HORIZON = 50
+# Fields whose value may differ between a run and its continuation: they change neither the
+# learning problem nor the shapes of what the checkpoint holds.
+RESUMABLE_KEYS: frozenset[str] = frozenset(
+    {
+        "epochs",
+        "n_test_rollouts",
+        "backend",
+        "run_dir",
+        "resume",
+        "checkpoint_every",
+        "tensorboard",
+        "progress",
+    }
+)
+PROG = "python -m rdher_jax.train"
+
+
+class ConfigError(ValueError):
+    """A user error in the configuration; its message is always a single line."""
+
+    def __init__(self, msg: str) -> None:
+        # Messages may embed library text; keep them on one line so stderr stays greppable.
+        super().__init__(" ".join(str(msg).split()))
+
+
+def _f(default: Any, doc: str) -> Any:
+    return field(default=default, metadata={"help": doc})
+
+
+@dataclass(frozen=True)
+class Config:
+    """Hyper-parameters and run options of one training run."""
+
+    env: str = _f("FetchReach", "task: one of " + ", ".join(ENV_NAMES))
+    algo: str = _f("her", "ddpg (no relabelling) or her (hindsight relabelling)")
+    seed: int = _f(0, "PRNG seed (0 <= seed < 2**32)")
+    epochs: int | None = _f(None, "training epochs; null: task default (FetchReach 10, else 50)")
+    n_cycles: int | None = _f(None, "cycles per epoch; null: 10 for FetchReach, else 50")
+    n_batches: int = _f(40, "gradient steps per cycle")
+    batch_size: int = _f(256, "transitions per gradient step")
+    num_envs: int = _f(
+        2, "parallel rollouts per cycle (baselines' rollout_batch_size x MPI workers)"
+    )
+    n_test_rollouts: int = _f(10, "deterministic test episodes per epoch")
+    buffer_size: int = _f(1_000_000, "replay buffer capacity in transitions")
+    backend: str = _f(
+        "auto", "physics: auto|mujoco|mjx (auto: mjx when JAX sees a GPU, else mujoco)"
+    )
+    scene: str = _f("auto", "scene model: auto|original|mjx")
+    hidden: int = _f(256, "units per hidden layer of actor and critic")
+    layers: int = _f(3, "hidden layers of actor and critic")
+    actor_lr: float = _f(1e-3, "actor Adam learning rate")
+    critic_lr: float = _f(1e-3, "critic Adam learning rate")
+    polyak: float = _f(0.95, "target-network averaging coefficient, in [0, 1]")
+    action_l2: float = _f(1.0, "weight of the squared-action penalty in the actor loss")
+    noise_eps: float = _f(0.2, "std of Gaussian exploration noise, as a fraction of max action")
+    random_eps: float = _f(0.3, "probability of a uniformly random exploratory action")
+    replay_k: int = _f(4, "HER ratio: goals are relabelled with probability 1 - 1/(1 + k)")
+    lambda_r: float = _f(1.0, "RDHER reward weight on real transitions (>= 0); 1: plain HER")
+    lambda_h: float = _f(1.0, "RDHER reward weight on relabelled (hindsight) transitions (>= 0); 1: plain HER")
+    gamma: float | None = _f(None, "discount in (0, 1); null: 1 - 1/T with T the episode length")
+    run_dir: str | None = _f(
+        None, "output directory; null: runs/<env>-<algo>-s<seed>-<YYYYmmdd-HHMMSS>"
+    )
+    resume: str | None = _f(None, "run directory to continue from its latest checkpoint")
+    checkpoint_every: int = _f(1, "epochs between checkpoints")
+    tensorboard: bool = _f(False, "also write TensorBoard scalars (needs tensorboardX)")
+    progress: bool = _f(True, "show a progress bar")
+
+
+FIELD_NAMES: tuple[str, ...] = tuple(f.name for f in dataclasses.fields(Config))
+_HINTS: dict[str, Any] = typing.get_type_hints(Config)
+
+
+def _type_name(tp: Any) -> str:
+    """``int``, ``float | None`` -> ``int``, ``float|null`` (the spelling used on the CLI)."""
+    args = typing.get_args(tp)
+    if isinstance(tp, types.UnionType) or typing.get_origin(tp) is typing.Union:
+        return "|".join("null" if a is type(None) else a.__name__ for a in args)
+    return tp.__name__
+
+
+def _fmt_value(v: Any) -> str:
+    if v is None:
+        return "null"
+    if isinstance(v, bool):
+        return str(v).lower()
+    return str(v)
+
+
+def help_text(prog: str = PROG) -> str:
+    """The ``--help`` text: every field with its type, default and description."""
+    lines = [
+        f"usage: {prog} [key=value ...]",
+        "",
+        f"example: {prog} env=FetchSlide algo=her seed=0 epochs=20",
+        "Values are parsed as YAML scalars; write null for None. Fields:",
+        "",
+    ]
+    for f in dataclasses.fields(Config):
+        head = f"  {f.name}: {_type_name(_HINTS[f.name])} = {_fmt_value(f.default)}"
+        lines.append(head)
+        lines.extend(
+            textwrap.wrap(f.metadata["help"], 96, initial_indent=" " * 6, subsequent_indent=" " * 6)
+        )
+    return "\n".join(lines) + "\n"
+
+
+def _check(ok: bool, msg: str) -> None:
+    if not ok:
+        raise ConfigError(msg)
+
+
+def _one_of(name: str, value: str, allowed: Sequence[str]) -> None:
+    if value not in allowed:
+        close = difflib.get_close_matches(value, allowed, n=1)
+        hint = f" (did you mean {close[0]}?)" if close else ""
+        raise ConfigError(f"unknown {name} {value!r}{hint}; valid: {', '.join(allowed)}")
+
+
+def validate(cfg: Config) -> Config:
+    """Range checks OmegaConf's typing cannot express; returns ``cfg`` or raises ConfigError."""
+    _one_of("env", cfg.env, ENV_NAMES)
+    _one_of("algo", cfg.algo, ALGO_NAMES)
+    _one_of("backend", cfg.backend, BACKENDS)
+    _one_of("scene", cfg.scene, SCENES)
+    _check(0 <= cfg.seed < 2**32, f"seed must be in [0, 2**32), got {cfg.seed}")
+    positive = (
+        "epochs",
+        "n_cycles",
+        "n_batches",
+        "batch_size",
+        "num_envs",
+        "n_test_rollouts",
+        "buffer_size",
+        "hidden",
+        "layers",
+        "checkpoint_every",
+    )
+    for name in positive:
+        v = getattr(cfg, name)
+        _check(v is None or v >= 1, f"{name} must be a positive integer, got {v}")
+    _check(cfg.replay_k >= 0, f"replay_k must be >= 0, got {cfg.replay_k}")
+    _check(
+        cfg.batch_size <= cfg.buffer_size,
+        f"batch_size ({cfg.batch_size}) must not exceed buffer_size ({cfg.buffer_size})",
+    )
+    floats = (
+        "actor_lr",
+        "critic_lr",
+        "polyak",
+        "action_l2",
+        "noise_eps",
+        "random_eps",
+        "lambda_r",
+        "lambda_h",
+        "gamma",
+    )
+    for name in floats:
+        v = getattr(cfg, name)
+        _check(v is None or math.isfinite(v), f"{name} must be a finite number, got {v}")
+    for name in ("actor_lr", "critic_lr"):
+        _check(getattr(cfg, name) > 0, f"{name} must be > 0, got {getattr(cfg, name)}")
+    for name in ("polyak", "random_eps"):
+        v = getattr(cfg, name)
+        _check(0.0 <= v <= 1.0, f"{name} must be in [0, 1], got {v}")
+    for name in ("action_l2", "noise_eps", "lambda_r", "lambda_h"):
+        _check(getattr(cfg, name) >= 0, f"{name} must be >= 0, got {getattr(cfg, name)}")
+    _check(cfg.gamma is None or 0.0 < cfg.gamma < 1.0, f"gamma must be in (0, 1), got {cfg.gamma}")
+    for name in ("run_dir", "resume"):
+        v = getattr(cfg, name)
+        _check(v is None or v.strip() != "", f"{name} must be a non-empty path or null")
+    return cfg
+
+
+def _merge(base: Config, overrides: Any, raw: Mapping[str, str]) -> Config:
+    """Merge an OmegaConf node onto ``base``, translating OmegaConf errors to ConfigError."""
+    try:
+        merged = OmegaConf.merge(OmegaConf.structured(base), overrides)
+        cfg = OmegaConf.to_object(merged)
+    except ConfigKeyError as e:
+        raise ConfigError(_unknown_key_msg(str(getattr(e, "key", None) or e))) from None
+    except OmegaConfBaseException as e:
+        key = str(getattr(e, "full_key", None) or getattr(e, "key", None) or "")
+        if key in _HINTS:
+            shown = raw.get(key, _fmt_value(OmegaConf.select(overrides, key, default=None)))
+            raise ConfigError(
+                f"invalid value {shown!r} for {key} (expected {_type_name(_HINTS[key])})"
+            ) from None
+        first = str(e).splitlines()[0] if str(e) else type(e).__name__
+        raise ConfigError(f"invalid configuration: {first}") from None
+    assert isinstance(cfg, Config)
+    return validate(cfg)
+
+
+def _unknown_key_msg(key: str) -> str:
+    close = difflib.get_close_matches(key, FIELD_NAMES, n=1)
+    hint = f" (did you mean {close[0]}?)" if close else ""
+    return f"unknown key {key!r}{hint}; run with --help to list the keys"
+
+
+def parse_args(argv: Sequence[str], base: Config | None = None, prog: str = PROG) -> Config:
+    """Apply ``key=value`` tokens onto ``base`` (default: ``Config()``) and validate.
+
+    ``-h``/``--help`` anywhere prints :func:`help_text` and exits 0. Later tokens win over
+    earlier ones for the same key.
+    """
+    if any(a in ("-h", "--help") for a in argv):
+        sys.stdout.write(help_text(prog))
+        sys.stdout.flush()
+        raise SystemExit(0)
+    raw: dict[str, str] = {}
+    for tok in argv:
+        key, sep, value = tok.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise ConfigError(f"malformed argument {tok!r}: expected key=value")
+        if key not in FIELD_NAMES:
+            # Checked before OmegaConf so that dotted or hydra-style keys get the same message.
+            raise ConfigError(_unknown_key_msg(key))
+        raw[key] = value
+    try:
+        overrides = OmegaConf.from_dotlist([f"{k}={v}" for k, v in raw.items()])
+    except OmegaConfBaseException as e:
+        raise ConfigError(f"could not parse arguments: {str(e).splitlines()[0]}") from None
+    return _merge(base or Config(), overrides, raw)
+
+
+def default_run_dir(cfg: Config, now: datetime.datetime | None = None) -> str:
+    """``runs/<env>-<algo>-s<seed>-<YYYYmmdd-HHMMSS>`` (relative to the working directory)."""
+    stamp = (now or datetime.datetime.now()).strftime("%Y%m%d-%H%M%S")
+    return str(Path("runs") / f"{cfg.env}-{cfg.algo}-s{cfg.seed}-{stamp}")
+
+
+def resolve(
+    cfg: Config, horizon: int = DEFAULT_HORIZON, now: datetime.datetime | None = None
+) -> Config:
+    """Fill every ``None`` default: epochs, n_cycles, gamma (1 - 1/horizon) and run_dir.
+
+    With ``resume`` set, ``run_dir`` is the resumed directory.
+    """
+    small = cfg.env == "FetchReach"
+    run_dir = cfg.run_dir
+    if cfg.resume is not None:
+        if run_dir is not None and Path(run_dir).resolve() != Path(cfg.resume).resolve():
+            raise ConfigError(
+                f"run_dir={run_dir} differs from resume={cfg.resume}; a resumed run writes into "
+                "the directory it resumes, so pass resume only"
+            )
+        run_dir = cfg.resume
+    out = dataclasses.replace(
+        cfg,
+        epochs=cfg.epochs if cfg.epochs is not None else (10 if small else 50),
+        n_cycles=cfg.n_cycles if cfg.n_cycles is not None else (10 if small else 50),
+        gamma=cfg.gamma if cfg.gamma is not None else 1.0 - 1.0 / horizon,
+        run_dir=run_dir if run_dir is not None else default_run_dir(cfg, now),
+    )
+    return validate(out)
+
+
+def to_yaml(cfg: Config) -> str:
+    """The config as YAML text, loadable by :func:`from_yaml`."""
+    return OmegaConf.to_yaml(OmegaConf.structured(cfg))
+
+
+def from_yaml(path: str | Path) -> Config:
+    """Load and validate a config saved by :func:`to_yaml`; unknown keys are errors."""
+    path = Path(path)
+    try:
+        node = OmegaConf.load(path)
+    except FileNotFoundError:
+        raise ConfigError(f"config file {path} does not exist") from None
+    except Exception as e:  # yaml errors have no common public base class here
+        raise ConfigError(f"cannot read {path}: {str(e).splitlines()[0]}") from None
+    try:
+        return _merge(Config(), node, {})
+    except ConfigError as e:
+        raise ConfigError(f"{path}: {e}") from None
+
+
+def resume_config(cfg: Config, argv: Sequence[str]) -> Config:
+    """The config of a resumed run: ``<resume>/config.yaml`` with ``argv`` re-applied.
+
+    Only :data:`RESUMABLE_KEYS` may differ from the saved run; anything else would change the
+    learning problem or the checkpoint's shapes, so it is a ConfigError.
+    """
+    if cfg.resume is None:
+        raise ConfigError("resume_config needs resume=<run dir>")
+    saved = from_yaml(Path(cfg.resume) / "config.yaml")
+    # run_dir is re-derived from resume (the directory may have been moved since).
+    new = parse_args(list(argv), base=dataclasses.replace(saved, run_dir=None))
+    new = resolve(new)
+    changed = [
+        k for k in FIELD_NAMES if k not in RESUMABLE_KEYS and getattr(new, k) != getattr(saved, k)
+    ]
+    if changed:
+        diffs = ", ".join(f"{k}: {getattr(saved, k)!r} -> {getattr(new, k)!r}" for k in changed)
+        raise ConfigError(f"cannot change {diffs} when resuming {cfg.resume}")
+    return new
+
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+def main_guard(fn: F) -> F:
+    """Decorate a CLI entry point: a ConfigError prints ``error: <msg>`` and exits with 2."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return fn(*args, **kwargs)
+        except ConfigError as e:
+            sys.stdout.flush()
+            print(f"error: {e}", file=sys.stderr)
+            raise SystemExit(2) from None
+
+    return typing.cast(F, wrapper)

@@ -1,0 +1,216 @@
+"""Config parsing, validation, resolution and the CLI error contract."""
+
+import dataclasses
+import datetime
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from rdher_jax.config import (
+    ENV_NAMES,
+    FIELD_NAMES,
+    Config,
+    ConfigError,
+    from_yaml,
+    help_text,
+    main_guard,
+    parse_args,
+    resolve,
+    resume_config,
+    to_yaml,
+)
+
+# The smallest CLI that behaves like the trainer's: parse argv, print the config.
+CLI = (
+    "import sys; from rdher_jax.config import main_guard, parse_args; "
+    "main_guard(lambda: print(parse_args(sys.argv[1:])))()"
+)
+
+
+def run_cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-c", CLI, *args], capture_output=True, text=True, timeout=60
+    )
+
+
+def test_defaults() -> None:
+    cfg = parse_args([])
+    assert cfg == Config()
+    assert (cfg.env, cfg.algo, cfg.seed) == ("FetchReach", "her", 0)
+    assert cfg.epochs is None and cfg.n_cycles is None and cfg.gamma is None
+    assert (cfg.n_batches, cfg.batch_size, cfg.num_envs, cfg.n_test_rollouts) == (40, 256, 2, 10)
+    assert cfg.buffer_size == 1_000_000
+    assert (cfg.backend, cfg.scene, cfg.hidden, cfg.layers) == ("auto", "auto", 256, 3)
+    assert (cfg.actor_lr, cfg.critic_lr, cfg.polyak, cfg.action_l2) == (1e-3, 1e-3, 0.95, 1.0)
+    assert (cfg.noise_eps, cfg.random_eps, cfg.replay_k) == (0.2, 0.3, 4)
+    assert (cfg.lambda_r, cfg.lambda_h) == (1.0, 1.0)
+    assert cfg.run_dir is None and cfg.resume is None
+    assert (cfg.checkpoint_every, cfg.tensorboard, cfg.progress) == (1, False, True)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.seed = 1  # type: ignore[misc]
+
+
+def test_overrides_are_typed() -> None:
+    cfg = parse_args(
+        [
+            "env=FetchSlide",
+            "seed=7",
+            "epochs=3",
+            "actor_lr=2e-4",
+            "gamma=0.9",
+            "tensorboard=true",
+            "progress=false",
+            "run_dir=out/x",
+            "epochs=4",
+        ]
+    )
+    assert cfg.env == "FetchSlide" and cfg.seed == 7
+    assert cfg.epochs == 4  # the later token wins
+    assert isinstance(cfg.actor_lr, float) and cfg.actor_lr == 2e-4
+    assert cfg.gamma == 0.9 and cfg.tensorboard is True and cfg.progress is False
+    assert cfg.run_dir == "out/x"
+    assert parse_args(["epochs=5", "epochs=null"]).epochs is None
+    assert parse_args(["polyak=1"]).polyak == 1.0  # ints are accepted for floats
+
+
+@pytest.mark.parametrize(
+    "argv, fragment",
+    [
+        (["epochz=3"], "unknown key 'epochz' (did you mean epochs?)"),
+        (["env.x=1"], "unknown key 'env.x'"),
+        (["seed=abc"], "invalid value 'abc' for seed (expected int)"),
+        (["epochs=2.5"], "invalid value '2.5' for epochs (expected int|null)"),
+        (["progress=maybe"], "for progress (expected bool)"),
+        (["seed"], "malformed argument 'seed': expected key=value"),
+        (["=3"], "malformed argument"),
+        (
+            ["env=FetchSlid"],
+            "unknown env 'FetchSlid' (did you mean FetchSlide?); valid: " + ", ".join(ENV_NAMES),
+        ),
+        (["algo=td3"], "unknown algo 'td3'"),
+        (["backend=cuda"], "unknown backend 'cuda'"),
+        (["scene=new"], "unknown scene 'new'"),
+        (["epochs=0"], "epochs must be a positive integer"),
+        (["batch_size=-1"], "batch_size must be a positive integer"),
+        (["seed=-1"], "seed must be in [0, 2**32)"),
+        (["random_eps=1.5"], "random_eps must be in [0, 1]"),
+        (["polyak=-0.1"], "polyak must be in [0, 1]"),
+        (["critic_lr=0"], "critic_lr must be > 0"),
+        (["gamma=1.0"], "gamma must be in (0, 1)"),
+        (["actor_lr=nan"], "actor_lr must be a finite number"),
+        (["replay_k=-1"], "replay_k must be >= 0"),
+        (["batch_size=512", "buffer_size=100"], "must not exceed buffer_size"),
+    ],
+)
+def test_errors_are_one_line(argv: list[str], fragment: str) -> None:
+    with pytest.raises(ConfigError) as info:
+        parse_args(argv)
+    msg = str(info.value)
+    assert fragment in msg
+    assert "\n" not in msg
+
+
+@pytest.mark.parametrize(
+    "argv, fragment",
+    [
+        (["nope=1"], "unknown key 'nope'"),
+        (["seed=x"], "invalid value 'x' for seed"),
+        (["env=Foo"], "valid: FetchReach, FetchPush, FetchSlide, FetchPickAndPlace"),
+        (["seed"], "malformed argument"),
+        (["gamma=2"], "gamma must be in (0, 1)"),
+    ],
+)
+def test_cli_error_exit_code_and_stderr(argv: list[str], fragment: str) -> None:
+    proc = run_cli(*argv)
+    assert proc.returncode == 2
+    assert proc.stdout == ""
+    lines = proc.stderr.splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert lines[0].startswith("error: ") and fragment in lines[0]
+
+
+def test_cli_success_and_help() -> None:
+    ok = run_cli("env=FetchPush", "seed=3")
+    assert ok.returncode == 0, ok.stderr
+    assert "env='FetchPush'" in ok.stdout and "seed=3" in ok.stdout
+    helped = run_cli("env=FetchPush", "--help")
+    assert helped.returncode == 0 and helped.stderr == ""
+    for name in FIELD_NAMES:
+        assert f"\n  {name}: " in helped.stdout
+    assert "epochs: int|null = null" in helped.stdout
+    assert "buffer_size: int = 1000000" in helped.stdout
+
+
+def test_help_in_process(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as info:
+        parse_args(["-h"])
+    assert info.value.code == 0
+    out = capsys.readouterr().out
+    assert out == help_text()
+    for f in dataclasses.fields(Config):
+        assert f.metadata["help"].split()[0] in out
+
+
+def test_main_guard_passes_results_and_other_errors() -> None:
+    assert main_guard(lambda x: x + 1)(1) == 2
+    with pytest.raises(KeyError):
+        main_guard(lambda: {}["x"])()
+    with pytest.raises(SystemExit) as info:
+        main_guard(lambda: parse_args(["bad"]))()
+    assert info.value.code == 2
+
+
+def test_resolve() -> None:
+    now = datetime.datetime(2024, 5, 6, 7, 8, 9)
+    reach = resolve(Config(), now=now)
+    assert (reach.epochs, reach.n_cycles) == (10, 10)
+    assert reach.gamma == pytest.approx(0.98)
+    assert reach.run_dir == str(Path("runs") / "FetchReach-her-s0-20240506-070809")
+    slide = resolve(parse_args(["env=FetchSlide", "algo=ddpg", "seed=2"]), now=now)
+    assert (slide.epochs, slide.n_cycles) == (50, 50)
+    assert slide.run_dir == str(Path("runs") / "FetchSlide-ddpg-s2-20240506-070809")
+    kept = resolve(parse_args(["epochs=3", "n_cycles=4", "gamma=0.9", "run_dir=a"]))
+    assert (kept.epochs, kept.n_cycles, kept.gamma, kept.run_dir) == (3, 4, 0.9, "a")
+    assert resolve(Config(), horizon=100).gamma == pytest.approx(0.99)
+    assert resolve(parse_args(["resume=runs/old"])).run_dir == "runs/old"
+    with pytest.raises(ConfigError, match="differs from resume"):
+        resolve(parse_args(["resume=runs/old", "run_dir=runs/new"]))
+
+
+def test_yaml_round_trip(tmp_path: Path) -> None:
+    cfg = resolve(parse_args(["env=FetchPickAndPlace", "seed=5", "tensorboard=true"]))
+    path = tmp_path / "config.yaml"
+    path.write_text(to_yaml(cfg))
+    assert from_yaml(path) == cfg
+    path.write_text(to_yaml(cfg) + "bogus: 1\n")
+    with pytest.raises(ConfigError, match="unknown key 'bogus'"):
+        from_yaml(path)
+    path.write_text(to_yaml(cfg).replace("seed: 5", "seed: five"))
+    with pytest.raises(ConfigError, match="invalid value"):
+        from_yaml(path)
+    with pytest.raises(ConfigError, match="does not exist"):
+        from_yaml(tmp_path / "missing.yaml")
+
+
+def test_resume_config(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    run.mkdir()
+    saved = resolve(parse_args(["env=FetchPush", "seed=3", f"run_dir={run}"]))
+    (run / "config.yaml").write_text(to_yaml(saved))
+    argv = [f"resume={run}", "epochs=80", "progress=false"]
+    cfg = resume_config(parse_args(argv), argv)
+    assert (cfg.env, cfg.seed, cfg.epochs, cfg.progress) == ("FetchPush", 3, 80, False)
+    assert cfg.run_dir == str(run) and cfg.resume == str(run)
+    argv = [f"resume={run}", "hidden=64"]
+    with pytest.raises(ConfigError, match="cannot change hidden: 256 -> 64"):
+        resume_config(parse_args(argv), argv)
+    with pytest.raises(ConfigError, match="does not exist"):
+        argv = [f"resume={tmp_path / 'nowhere'}"]
+        resume_config(parse_args(argv), argv)
+
+
+def test_env_names_match_env_package() -> None:
+    scene = pytest.importorskip("rdher_jax.envs.scene")
+    assert set(scene.TASK_XML) == set(ENV_NAMES)

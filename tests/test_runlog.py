@@ -1,0 +1,144 @@
+"""Run directory, metrics CSV, plot, atomic JSON and TensorBoard writers."""
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rdher_jax.config import Config, ConfigError, parse_args
+from rdher_jax.runlog import (
+    METRIC_FIELDS,
+    MetricsCSV,
+    TBWriter,
+    make_run_dir,
+    plot_success,
+    write_json_atomic,
+    write_text_atomic,
+)
+
+
+def _row(epoch: int) -> dict:
+    return {
+        "epoch": epoch,
+        "env_steps": 1000 * epoch,
+        "updates": 40 * epoch,
+        "wall_time": 1.5 * epoch,
+        "test_success": np.float32(epoch / 10),
+        "train_success": epoch / 20,
+        "critic_loss": 0.1,
+        "actor_loss": -0.2,
+        "q_mean": float("nan"),
+    }
+
+
+def _leftovers(directory: Path) -> list[str]:
+    return [p.name for p in directory.iterdir() if p.name.endswith(".tmp")]
+
+
+def test_make_run_dir(tmp_path: Path) -> None:
+    run = tmp_path / "a" / "b"
+    cfg = parse_args([f"run_dir={run}"])
+    assert make_run_dir(cfg) == run and run.is_dir()
+    assert make_run_dir(cfg) == run  # existing but empty is fine
+    (run / "metrics.csv").write_text("x\n")
+    with pytest.raises(ConfigError, match="exists and is not empty; pass resume="):
+        make_run_dir(cfg)
+    assert make_run_dir(parse_args([f"resume={run}"])) == run
+    with pytest.raises(ConfigError, match="does not exist"):
+        make_run_dir(parse_args([f"resume={tmp_path / 'missing'}"]))
+    (tmp_path / "file").write_text("")
+    with pytest.raises(ConfigError, match="not a directory"):
+        make_run_dir(parse_args([f"run_dir={tmp_path / 'file'}"]))
+
+
+def test_make_run_dir_default_name(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    path = make_run_dir(Config(env="FetchSlide", seed=4))
+    assert path.parent == Path("runs") and path.name.startswith("FetchSlide-her-s4-")
+    assert (tmp_path / path).is_dir()
+
+
+def test_metrics_csv_append_reopen_truncate(tmp_path: Path) -> None:
+    path = tmp_path / "metrics.csv"
+    log = MetricsCSV(path, METRIC_FIELDS)
+    assert path.read_text() == ",".join(METRIC_FIELDS) + "\n"
+    for e in range(1, 4):
+        log.append(_row(e))
+    rows = MetricsCSV(path, METRIC_FIELDS).rows()  # reopening continues the same file
+    assert [r["epoch"] for r in rows] == ["1", "2", "3"]
+    assert rows[1]["test_success"] == "0.2" and rows[0]["q_mean"] == "nan"
+    log.append({"epoch": 4, "env_steps": 4000})  # missing columns stay empty
+    assert log.rows()[-1]["test_success"] == ""
+    with pytest.raises(ValueError):
+        log.append({"epoch": 5, "bogus": 1})
+    assert len(log.rows()) == 4  # the rejected row wrote nothing
+    assert log.truncate_after(2) == 2
+    assert [r["epoch"] for r in log.rows()] == ["1", "2"]
+    assert log.truncate_after(7) == 0
+    log.append(_row(3))
+    assert [r["epoch"] for r in log.rows()] == ["1", "2", "3"]
+    assert _leftovers(tmp_path) == []
+
+
+def test_metrics_csv_torn_line_and_header_mismatch(tmp_path: Path) -> None:
+    path = tmp_path / "metrics.csv"
+    log = MetricsCSV(path, ["epoch", "x"])
+    log.append({"epoch": 1, "x": 0.5})
+    with open(path, "a") as f:
+        f.write("2,0.")  # a row cut short by a crash
+    log = MetricsCSV(path, ["epoch", "x"])
+    assert log.rows() == [{"epoch": "1", "x": "0.5"}]
+    log.append({"epoch": 2, "x": 0.25})
+    assert path.read_text() == "epoch,x\n1,0.5\n2,0.25\n"
+    with pytest.raises(ValueError, match="has columns"):
+        MetricsCSV(path, ["epoch", "y"])
+    path.write_text("epo")  # even the header was torn
+    assert MetricsCSV(path, ["epoch", "x"]).rows() == []
+    assert path.read_text() == "epoch,x\n"
+
+
+def test_plot_success(tmp_path: Path) -> None:
+    log = MetricsCSV(tmp_path / "metrics.csv")
+    png = tmp_path / "success.png"
+    plot_success(log.path, png, "empty")  # header only: still a valid image
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    for e in range(1, 6):
+        log.append(_row(e))
+    log.append({"epoch": 6, "env_steps": 6000})  # blank success cells are skipped
+    plot_success(log.path, png, "FetchReach her s0")
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 5000
+    assert _leftovers(tmp_path) == []
+    assert "matplotlib.pyplot" not in sys.modules
+
+
+def test_write_json_atomic(tmp_path: Path) -> None:
+    path = tmp_path / "sub" / "summary.json"
+    write_json_atomic(path, {"a": np.float32(0.5), "b": np.arange(3), "c": Path("x")})
+    assert json.loads(path.read_text()) == {"a": 0.5, "b": [0, 1, 2], "c": "x"}
+    with pytest.raises(TypeError):
+        write_json_atomic(path, {"bad": object()})
+    assert json.loads(path.read_text())["a"] == 0.5  # the old file survived the failure
+    assert _leftovers(path.parent) == []
+    write_text_atomic(path, "{}")
+    assert path.read_text() == "{}"
+    assert path.stat().st_mode & 0o044  # readable by others under a usual umask
+
+
+def test_tensorboard_writer(tmp_path: Path) -> None:
+    pytest.importorskip("tensorboardX")
+    tb = TBWriter(tmp_path)
+    tb.scalars({"test_success": np.float32(0.5), "epoch": 1, "note": "skipped"}, step=1)
+    tb.flush()
+    tb.close()
+    assert tb.backend == "tensorboardX"
+    assert any(p.name.startswith("events.out.tfevents") for p in (tmp_path / "tb").iterdir())
+
+
+def test_tensorboard_missing(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    for mod in ("tensorboardX", "torch", "torch.utils.tensorboard", "tensorflow"):
+        monkeypatch.setitem(sys.modules, mod, None)  # makes the import raise ImportError
+    with pytest.raises(ConfigError) as info:
+        TBWriter(tmp_path)
+    assert "pip install tensorboardX" in str(info.value) and "\n" not in str(info.value)
