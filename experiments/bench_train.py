@@ -1,0 +1,200 @@
+"""Trainer benchmark: cold start to 0.95 test success on FetchReach, learner speed against its
+arithmetic bound, and env-steps/s of the whole training loop.
+
+    python experiments/bench_train.py                 # about 3-5 minutes on a 2-core CPU
+    python experiments/bench_train.py --quick         # smoke run
+    python experiments/bench_train.py --repeats 3     # median of 3 cold starts
+
+Writes ``experiments/results/bench_train.md`` and ``.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+
+
+def cold_start_to(target: float, env: str, max_epochs: int, extra: list[str]) -> dict:
+    """Launch ``python -m rdher_jax.train`` and time, from process start, until an epoch with
+    test success >= target is written (compile, imports and env setup included)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        run = Path(tmp) / "run"
+        cmd = [sys.executable, "-m", "rdher_jax.train", f"env={env}", f"epochs={max_epochs}",
+               f"run_dir={run}", "progress=false", *extra]
+        t0 = time.perf_counter()
+        p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        hit = None
+        rows: list[dict] = []
+        while p.poll() is None:
+            time.sleep(0.05)
+            f = run / "metrics.csv"
+            if f.exists():
+                with open(f) as fh:
+                    rows = list(csv.DictReader(fh))
+                ok = [r for r in rows if float(r["test_success"]) >= target]
+                if ok and hit is None:
+                    hit = {"seconds": time.perf_counter() - t0, "epoch": int(ok[0]["epoch"]),
+                           "env_steps": int(ok[0]["env_steps"])}
+                    p.kill()
+                    break
+        p.wait()
+        if p.returncode not in (0, -9) and hit is None:
+            raise RuntimeError(f"training failed: {p.stderr.read()[-2000:]}")
+        if hit is None:
+            with open(run / "metrics.csv") as fh:
+                rows = list(csv.DictReader(fh))
+        # env-steps/s of the loop, epochs after the first (the first includes compilation)
+        loop = None
+        if len(rows) >= 2:
+            r0, r1 = rows[0], rows[-1]
+            steps = int(r1["env_steps"]) - int(r0["env_steps"])
+            loop = steps / (float(r1["wall_time"]) - float(r0["wall_time"]))
+        return {"hit": hit, "epochs_run": len(rows), "loop_env_steps_per_s": loop,
+                "first_epoch_s": float(rows[0]["wall_time"]) if rows else None}
+
+
+def learner_speed(batch: int, n: int, repeats: int) -> dict:
+    """Gradient steps/s: update only (a fixed batch) and sample + update (as in training)."""
+    import jax
+    import jax.numpy as jnp
+
+    from rdher_jax import buffer as rb
+    from rdher_jax.ddpg import HParams, make_ddpg
+    from rdher_jax.her import sample_her
+
+    obs_dim, goal_dim, act_dim, T = 25, 3, 4, 50  # FetchPush sizes
+    agent = make_ddpg(obs_dim, goal_dim, act_dim)
+    hp = HParams.default()
+    ds = agent.init(jax.random.PRNGKey(0), hp)
+    buf = rb.init(100_000, T, obs_dim, goal_dim, act_dim)
+    k = jax.random.PRNGKey(1)
+    ep = rb.Episode(
+        obs=jax.random.normal(k, (2000, T + 1, obs_dim)),
+        ag=jax.random.uniform(k, (2000, T + 1, goal_dim)),
+        g=jax.random.uniform(k, (2000, T + 1, goal_dim)),
+        action=jax.random.uniform(k, (2000, T, act_dim), minval=-1, maxval=1),
+    )
+    buf = rb.add(buf, ep)
+
+    def reward(a, g):
+        return -(jnp.linalg.norm(a - g, axis=-1) > 0.05).astype(jnp.float32)
+
+    fixed = sample_her(k, buf, batch, hp.relabel_prob, reward)
+
+    @jax.jit
+    def updates_only(ds):
+        return jax.lax.scan(lambda s, _: (agent.update(s, fixed, hp)[0], None), ds, None,
+                            length=n)[0]
+
+    @jax.jit
+    def sample_and_update(ds, key):
+        def body(s, kk):
+            return agent.update(s, sample_her(kk, buf, batch, hp.relabel_prob, reward), hp)[0], None
+
+        return jax.lax.scan(body, ds, jax.random.split(key, n))[0]
+
+    one = jax.jit(lambda ds: agent.update(ds, fixed, hp)[0])
+    flops = one.lower(ds).compile().cost_analysis()
+    flops = flops[0] if isinstance(flops, list) else flops
+    flops = float(flops.get("flops", float("nan")))
+
+    def timeit(f, *a):
+        jax.block_until_ready(f(*a))
+        ts = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            jax.block_until_ready(f(*a))
+            ts.append(time.perf_counter() - t0)
+        return n / statistics.median(ts)
+
+    u = timeit(updates_only, ds)
+    su = timeit(sample_and_update, ds, k)
+    # This CPU's dense-matmul throughput in XLA: the arithmetic ceiling the learner runs against.
+    a = jnp.ones((1024, 1024), jnp.float32)
+    mm = jax.jit(lambda x: jax.lax.fori_loop(0, 20, lambda i, y: jnp.tanh(y @ a), x))
+    jax.block_until_ready(mm(a))
+    tt = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(mm(a))
+        tt.append(time.perf_counter() - t0)
+    mm_rate = 20 * 2 * 1024**3 / statistics.median(tt)
+    return {"batch": batch, "flops_per_update": flops, "updates_per_s": u,
+            "sample_updates_per_s": su, "achieved_gflops": u * flops / 1e9,
+            "matmul_gflops": mm_rate / 1e9,
+            "bound_updates_per_s": mm_rate / flops if flops == flops else None}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="smoke run: 1 repeat, fewer updates")
+    ap.add_argument("--repeats", type=int, default=1, help="cold starts to time (median)")
+    ap.add_argument("--target", type=float, default=0.95)
+    ap.add_argument("--out", default=str(HERE / "results" / "bench_train.md"))
+    args = ap.parse_args()
+
+    import jax
+
+    cmd = "python experiments/bench_train.py " + " ".join(sys.argv[1:])
+    n = 20 if args.quick else 100
+    learner = learner_speed(256, n, 3)
+    print(f"learner: {learner}", flush=True)
+    starts = [cold_start_to(args.target, "FetchReach", 10, []) for _ in range(args.repeats)]
+    for s in starts:
+        print(f"cold start: {s}", flush=True)
+    hits = [s["hit"]["seconds"] for s in starts if s["hit"]]
+    loops = [s["loop_env_steps_per_s"] for s in starts if s["loop_env_steps_per_s"]]
+    info = {
+        "command": cmd,
+        "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs",
+        "jax_backend": jax.default_backend(),
+        "jax": jax.__version__,
+        "learner": learner,
+        "cold_starts": starts,
+        "median_seconds_to_target": statistics.median(hits) if hits else None,
+        "median_loop_env_steps_per_s": statistics.median(loops) if loops else None,
+    }
+    lines = [
+        "# Trainer benchmark", "",
+        f"`{cmd}` on {info['machine']} (JAX {info['jax']}, {info['jax_backend']}).", "",
+        "| figure | value |", "|---|---|",
+        f"| cold start to test success >= {args.target} on FetchReach (median of "
+        f"{len(starts)}) | "
+        + (f"{info['median_seconds_to_target']:.1f} s" if hits else "not reached") + " |",
+        *[f"| run {i}: epoch / env steps at target | "
+          + (f"{s['hit']['epoch']} / {s['hit']['env_steps']}" if s["hit"] else "-") + " |"
+          for i, s in enumerate(starts)],
+        "| first epoch incl. compile (s) | "
+        + ", ".join(f"{s['first_epoch_s']:.1f}" for s in starts if s["first_epoch_s"]) + " |",
+        "| whole-loop env-steps/s after the first epoch | "
+        + (f"{info['median_loop_env_steps_per_s']:.0f}" if loops else "-") + " |",
+        f"| learner: FLOP per actor+critic update, batch 256 (XLA cost analysis) | "
+        f"{learner['flops_per_update'] / 1e9:.2f} GFLOP |",
+        f"| learner: updates/s, fixed batch | {learner['updates_per_s']:.0f} |",
+        f"| learner: updates/s incl. HER sampling | {learner['sample_updates_per_s']:.0f} |",
+        f"| learner: achieved GFLOP/s | {learner['achieved_gflops']:.1f} |",
+        f"| this CPU: XLA 1024x1024 matmul GFLOP/s | {learner['matmul_gflops']:.1f} |",
+        f"| arithmetic bound on updates/s (matmul rate / FLOP per update) | "
+        f"{learner['bound_updates_per_s']:.0f} |",
+    ]
+    text = "\n".join(lines) + "\n"
+    print(text)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(text)
+    out.with_suffix(".json").write_text(json.dumps(info, indent=2, default=str))
+
+
+if __name__ == "__main__":
+    main()
