@@ -1,0 +1,342 @@
+"""Goal-conditioned DDPG as pure functions (OpenAI baselines HER's DDPG, with RDHER reward weights).
+
+Every hyperparameter that a sweep may vary lives in `HParams` as a float32 scalar array, so the
+whole training function can be `jax.vmap`-ed over a stack of them. Architecture and
+preprocessing constants are static and fixed by `make_ddpg`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, NamedTuple, Protocol
+
+import jax
+import jax.numpy as jnp
+import optax
+from brax.training.acme import running_statistics
+from flax import struct
+
+from rdher_jax.networks import Actor, Critic
+
+Params = Any
+
+
+class Batch(Protocol):
+    """Fields of a training batch (`rdher_jax.her.Transition` provides them)."""
+
+    obs: jax.Array  # (B, obs_dim)
+    goal: jax.Array  # (B, goal_dim)
+    action: jax.Array  # (B, act_dim)
+    reward: jax.Array  # (B,)
+    next_obs: jax.Array  # (B, obs_dim)
+    next_goal: jax.Array  # (B, goal_dim)
+    hindsight: jax.Array  # (B,) bool: goal was relabelled
+
+
+@struct.dataclass
+class HParams:
+    """Sweepable hyperparameters; every field is a float32 scalar array."""
+
+    actor_lr: jax.Array
+    critic_lr: jax.Array
+    polyak: jax.Array  # target <- polyak * target + (1 - polyak) * online
+    action_l2: jax.Array
+    noise_eps: jax.Array  # Gaussian exploration std, as a fraction of max_u
+    random_eps: jax.Array  # probability of a uniform random action (per row)
+    relabel_prob: jax.Array  # used by the HER sampler
+    lambda_r: jax.Array  # reward weight of real transitions (RDHER)
+    lambda_h: jax.Array  # reward weight of hindsight transitions (RDHER)
+    gamma: jax.Array
+
+    @classmethod
+    def default(cls, T: int = 50, **overrides: float) -> HParams:
+        """Baselines HER defaults.
+
+        Args:
+            T: episode length; sets gamma = 1 - 1/T as in baselines.
+            **overrides: field values replacing the defaults.
+
+        Returns:
+            HParams with float32 scalar fields.
+        """
+        values: dict[str, float] = dict(
+            actor_lr=1e-3,
+            critic_lr=1e-3,
+            polyak=0.95,
+            action_l2=1.0,
+            noise_eps=0.2,
+            random_eps=0.3,
+            relabel_prob=0.8,
+            lambda_r=1.0,
+            lambda_h=1.0,
+            gamma=1.0 - 1.0 / T,
+        )
+        unknown = set(overrides) - set(values)
+        if unknown:
+            raise TypeError(f"unknown HParams fields: {sorted(unknown)}")
+        values.update(overrides)
+        return cls(**{k: jnp.asarray(v, jnp.float32) for k, v in values.items()})
+
+
+@struct.dataclass
+class DDPGState:
+    """Learner state: online and target networks, optimisers and input normalisers."""
+
+    actor_params: Params
+    critic_params: Params
+    target_actor_params: Params
+    target_critic_params: Params
+    actor_opt_state: optax.OptState
+    critic_opt_state: optax.OptState
+    obs_norm: running_statistics.RunningStatisticsState
+    goal_norm: running_statistics.RunningStatisticsState
+
+
+class DDPG(NamedTuple):
+    """Pure DDPG functions produced by `make_ddpg` (see there for signatures)."""
+
+    actor: Actor
+    critic: Critic
+    init: Callable[[jax.Array, HParams], DDPGState]
+    normalise: Callable[[DDPGState, jax.Array, jax.Array], tuple[jax.Array, jax.Array]]
+    update_normaliser: Callable[[DDPGState, jax.Array, jax.Array], DDPGState]
+    act: Callable[[DDPGState, jax.Array, jax.Array], jax.Array]
+    explore: Callable[[jax.Array, DDPGState, jax.Array, jax.Array, HParams], jax.Array]
+    critic_target: Callable[[jax.Array, jax.Array, jax.Array, HParams], jax.Array]
+    critic_loss: Callable[[Params, DDPGState, Batch, HParams], tuple[jax.Array, jax.Array]]
+    actor_loss: Callable[[Params, DDPGState, Batch, HParams], jax.Array]
+    update: Callable[[DDPGState, Batch, HParams], tuple[DDPGState, dict[str, jax.Array]]]
+    update_many: Callable[[DDPGState, Batch, HParams], tuple[DDPGState, dict[str, jax.Array]]]
+    target_update: Callable[[DDPGState, HParams], DDPGState]
+
+
+def critic_target(
+    reward: jax.Array, q_next: jax.Array, hindsight: jax.Array, hparams: HParams
+) -> jax.Array:
+    """Clipped, reward-weighted TD target y = clip(lam * r + gamma * q_next, -lam / (1 - gamma), 0).
+
+    lam is lambda_h on hindsight rows and lambda_r on real rows. With rewards in {-1, 0} the
+    weighted return lies in [-lam / (1 - gamma), 0], so the clip range follows each row's weight.
+    There is no done mask: Fetch episodes end by time limit, which is not termination.
+
+    Args:
+        reward: raw rewards, (B,).
+        q_next: target-network Q of the next state, (B,).
+        hindsight: whether each row's goal was relabelled, (B,) bool.
+        hparams: supplies lambda_r, lambda_h, gamma.
+
+    Returns:
+        Targets (B,), with gradients stopped.
+    """
+    lam = jnp.where(hindsight, hparams.lambda_h, hparams.lambda_r)
+    y = lam * reward + hparams.gamma * q_next
+    y = jnp.clip(y, -lam / (1.0 - hparams.gamma), 0.0)
+    return jax.lax.stop_gradient(y)
+
+
+def _adam(learning_rate: jax.Array) -> optax.GradientTransformation:
+    # inject_hyperparams keeps the learning rate in the optimiser state as an array, so a traced
+    # (vmapped) learning rate is fine where plain optax.adam would need a Python float.
+    return optax.inject_hyperparams(optax.adam)(learning_rate=learning_rate)
+
+
+def _adam_step(
+    params: Params, grads: Params, opt_state: optax.OptState, learning_rate: jax.Array
+) -> tuple[Params, optax.OptState]:
+    # inject_hyperparams reads the rate from its state; overwrite it so the HParams passed to
+    # update are authoritative rather than the ones seen at init.
+    opt_state = opt_state._replace(
+        hyperparams={**opt_state.hyperparams, "learning_rate": learning_rate}
+    )
+    updates, opt_state = _adam(learning_rate).update(grads, opt_state, params)
+    return optax.apply_updates(params, updates), opt_state
+
+
+def make_ddpg(
+    obs_dim: int,
+    goal_dim: int,
+    act_dim: int,
+    hidden: tuple[int, ...] = (256, 256, 256),
+    max_u: float = 1.0,
+    clip_obs: float = 200.0,
+    norm_eps: float = 0.01,
+    norm_clip: float = 5.0,
+) -> DDPG:
+    """Builds the DDPG functions for fixed dimensions and architecture.
+
+    Args:
+        obs_dim: observation size.
+        goal_dim: goal size.
+        act_dim: action size.
+        hidden: hidden layer widths of actor and critic.
+        max_u: action bound.
+        clip_obs: raw observations and goals are clipped to +-clip_obs before anything else.
+        norm_eps: minimum normaliser std.
+        norm_clip: normalised inputs are clipped to +-norm_clip.
+
+    Returns:
+        A DDPG of pure, jittable functions.
+    """
+    actor = Actor(act_dim=act_dim, hidden=tuple(hidden), max_u=max_u)
+    critic = Critic(hidden=tuple(hidden), max_u=max_u)
+
+    def init(key: jax.Array, hparams: HParams) -> DDPGState:
+        """Fresh networks (targets equal to online), Adam states and empty normalisers."""
+        k_actor, k_critic = jax.random.split(key)
+        obs = jnp.zeros((1, obs_dim), jnp.float32)
+        goal = jnp.zeros((1, goal_dim), jnp.float32)
+        action = jnp.zeros((1, act_dim), jnp.float32)
+        actor_params = actor.init(k_actor, obs, goal)
+        critic_params = critic.init(k_critic, obs, goal, action)
+
+        def norm_state(dim: int) -> running_statistics.RunningStatisticsState:
+            state = running_statistics.init_state(jnp.zeros((dim,), jnp.float32))
+            # brax leaves std_eps a Python float; an array leaf keeps the state a uniform
+            # pytree of arrays under vmap and scan. Zero so std = max(norm_eps, sqrt(var)).
+            return state.replace(std_eps=jnp.zeros((), jnp.float32))
+
+        return DDPGState(
+            actor_params=actor_params,
+            critic_params=critic_params,
+            target_actor_params=actor_params,
+            target_critic_params=critic_params,
+            actor_opt_state=_adam(hparams.actor_lr).init(actor_params),
+            critic_opt_state=_adam(hparams.critic_lr).init(critic_params),
+            obs_norm=norm_state(obs_dim),
+            goal_norm=norm_state(goal_dim),
+        )
+
+    def normalise(state: DDPGState, obs: jax.Array, goal: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """Clips raw inputs to +-clip_obs, standardises them, clips to +-norm_clip."""
+        obs = running_statistics.normalize(
+            jnp.clip(obs, -clip_obs, clip_obs), state.obs_norm, max_abs_value=norm_clip
+        )
+        goal = running_statistics.normalize(
+            jnp.clip(goal, -clip_obs, clip_obs), state.goal_norm, max_abs_value=norm_clip
+        )
+        return obs, goal
+
+    def update_normaliser(state: DDPGState, obs: jax.Array, goal: jax.Array) -> DDPGState:
+        """Adds raw observations (..., obs_dim) and goals (..., goal_dim) to the statistics."""
+        obs_norm = running_statistics.update(
+            state.obs_norm, jnp.clip(obs, -clip_obs, clip_obs), std_min_value=norm_eps
+        )
+        goal_norm = running_statistics.update(
+            state.goal_norm, jnp.clip(goal, -clip_obs, clip_obs), std_min_value=norm_eps
+        )
+        return state.replace(obs_norm=obs_norm, goal_norm=goal_norm)
+
+    def act(state: DDPGState, obs: jax.Array, goal: jax.Array) -> jax.Array:
+        """Deterministic policy action for raw (..., obs_dim) observations and goals."""
+        return actor.apply(state.actor_params, *normalise(state, obs, goal))
+
+    def explore(
+        key: jax.Array, state: DDPGState, obs: jax.Array, goal: jax.Array, hparams: HParams
+    ) -> jax.Array:
+        """Baselines exploration: Gaussian noise, clip, then uniform random rows w.p. random_eps."""
+        k_noise, k_coin, k_uniform = jax.random.split(key, 3)
+        action = act(state, obs, goal)
+        action = action + hparams.noise_eps * max_u * jax.random.normal(k_noise, action.shape)
+        action = jnp.clip(action, -max_u, max_u)
+        # One coin per row (not per dimension): a random action replaces the whole action.
+        coin = jax.random.bernoulli(k_coin, hparams.random_eps, action.shape[:-1])
+        uniform = jax.random.uniform(k_uniform, action.shape, minval=-max_u, maxval=max_u)
+        return jnp.where(coin[..., None], uniform, action)
+
+    def critic_loss(
+        critic_params: Params, state: DDPGState, batch: Batch, hparams: HParams
+    ) -> tuple[jax.Array, jax.Array]:
+        """Returns (mean squared TD error, mean Q(o, g, a)) for the given critic parameters."""
+        obs, goal = normalise(state, batch.obs, batch.goal)
+        next_obs, next_goal = normalise(state, batch.next_obs, batch.next_goal)
+        next_action = actor.apply(state.target_actor_params, next_obs, next_goal)
+        q_next = critic.apply(state.target_critic_params, next_obs, next_goal, next_action)
+        y = critic_target(batch.reward, q_next, batch.hindsight, hparams)
+        q = critic.apply(critic_params, obs, goal, batch.action)
+        return jnp.mean(jnp.square(q - y)), jnp.mean(q)
+
+    def actor_loss(
+        actor_params: Params, state: DDPGState, batch: Batch, hparams: HParams
+    ) -> jax.Array:
+        """Returns -mean Q(o, g, pi(o, g)) + action_l2 * mean((pi / max_u)^2)."""
+        obs, goal = normalise(state, batch.obs, batch.goal)
+        pi = actor.apply(actor_params, obs, goal)
+        q_pi = critic.apply(state.critic_params, obs, goal, pi)
+        return -jnp.mean(q_pi) + hparams.action_l2 * jnp.mean(jnp.square(pi / max_u))
+
+    def update(
+        state: DDPGState, batch: Batch, hparams: HParams
+    ) -> tuple[DDPGState, dict[str, jax.Array]]:
+        """One gradient step on actor and critic (targets untouched).
+
+        Both gradients come from the pre-update parameters, as in baselines, where one session
+        run computes them before either Adam step is applied.
+
+        Args:
+            state: learner state.
+            batch: transitions with (B, ...) fields.
+            hparams: supplies learning rates and loss weights.
+
+        Returns:
+            (new state, metrics dict with critic_loss, actor_loss, q_mean).
+        """
+        (c_loss, q_mean), c_grads = jax.value_and_grad(critic_loss, has_aux=True)(
+            state.critic_params, state, batch, hparams
+        )
+        a_loss, a_grads = jax.value_and_grad(actor_loss)(state.actor_params, state, batch, hparams)
+        critic_params, critic_opt_state = _adam_step(
+            state.critic_params, c_grads, state.critic_opt_state, hparams.critic_lr
+        )
+        actor_params, actor_opt_state = _adam_step(
+            state.actor_params, a_grads, state.actor_opt_state, hparams.actor_lr
+        )
+        state = state.replace(
+            actor_params=actor_params,
+            critic_params=critic_params,
+            actor_opt_state=actor_opt_state,
+            critic_opt_state=critic_opt_state,
+        )
+        return state, {"critic_loss": c_loss, "actor_loss": a_loss, "q_mean": q_mean}
+
+    def update_many(
+        state: DDPGState, batches: Batch, hparams: HParams
+    ) -> tuple[DDPGState, dict[str, jax.Array]]:
+        """Runs `update` over the leading axis of `batches`.
+
+        Args:
+            state: learner state.
+            batches: transitions with (n, B, ...) fields.
+            hparams: as for `update`.
+
+        Returns:
+            (final state, metrics with a leading (n,) axis).
+        """
+        return jax.lax.scan(lambda s, b: update(s, b, hparams), state, batches)
+
+    def target_update(state: DDPGState, hparams: HParams) -> DDPGState:
+        """Polyak averaging: target <- polyak * target + (1 - polyak) * online."""
+        p = hparams.polyak
+
+        def mix(target: Params, online: Params) -> Params:
+            return jax.tree.map(lambda t, o: p * t + (1.0 - p) * o, target, online)
+
+        return state.replace(
+            target_actor_params=mix(state.target_actor_params, state.actor_params),
+            target_critic_params=mix(state.target_critic_params, state.critic_params),
+        )
+
+    return DDPG(
+        actor=actor,
+        critic=critic,
+        init=init,
+        normalise=normalise,
+        update_normaliser=update_normaliser,
+        act=act,
+        explore=explore,
+        critic_target=critic_target,
+        critic_loss=critic_loss,
+        actor_loss=actor_loss,
+        update=update,
+        update_many=update_many,
+        target_update=target_update,
+    )

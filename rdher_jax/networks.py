@@ -1,0 +1,87 @@
+"""Actor and critic networks for goal-conditioned DDPG (baselines HER architecture)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+# Baselines builds its layers with tf's xavier (glorot-uniform) kernels and zero biases; matching
+# that costs nothing and keeps the reproduction's starting point the same.
+_KERNEL_INIT = nn.initializers.glorot_uniform()
+
+
+class MLP(nn.Module):
+    """ReLU MLP with a linear output layer.
+
+    Attributes:
+        hidden: widths of the hidden layers.
+        out_dim: width of the output layer.
+    """
+
+    hidden: Sequence[int]
+    out_dim: int
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        """Args: x (..., in_dim). Returns: (..., out_dim)."""
+        for i, width in enumerate(self.hidden):
+            x = nn.relu(nn.Dense(width, kernel_init=_KERNEL_INIT, name=f"hidden_{i}")(x))
+        return nn.Dense(self.out_dim, kernel_init=_KERNEL_INIT, name="out")(x)
+
+
+class Actor(nn.Module):
+    """Deterministic policy pi(o, g) = max_u * tanh(MLP([o, g])).
+
+    Attributes:
+        act_dim: action dimension.
+        hidden: hidden layer widths.
+        max_u: action bound.
+    """
+
+    act_dim: int
+    hidden: Sequence[int] = (256, 256, 256)
+    max_u: float = 1.0
+
+    @nn.compact
+    def __call__(self, obs: jax.Array, goal: jax.Array) -> jax.Array:
+        """Maps normalised observations and goals to actions.
+
+        Args:
+            obs: normalised observations, (..., obs_dim).
+            goal: normalised goals, (..., goal_dim).
+
+        Returns:
+            Actions in [-max_u, max_u], (..., act_dim).
+        """
+        x = jnp.concatenate([obs, goal], axis=-1)
+        return self.max_u * jnp.tanh(MLP(self.hidden, self.act_dim, name="mlp")(x))
+
+
+class Critic(nn.Module):
+    """Action-value Q(o, g, u) = MLP([o, g, u / max_u]).
+
+    Attributes:
+        hidden: hidden layer widths.
+        max_u: action bound (actions enter the network rescaled to [-1, 1]).
+    """
+
+    hidden: Sequence[int] = (256, 256, 256)
+    max_u: float = 1.0
+
+    @nn.compact
+    def __call__(self, obs: jax.Array, goal: jax.Array, action: jax.Array) -> jax.Array:
+        """Scores normalised observation/goal pairs and raw actions.
+
+        Args:
+            obs: normalised observations, (..., obs_dim).
+            goal: normalised goals, (..., goal_dim).
+            action: actions in [-max_u, max_u], (..., act_dim).
+
+        Returns:
+            Q values, (...,).
+        """
+        x = jnp.concatenate([obs, goal, action / self.max_u], axis=-1)
+        return MLP(self.hidden, 1, name="mlp")(x)[..., 0]

@@ -1,0 +1,368 @@
+"""Tests for the DDPG core: targets, losses, optimiser steps, exploration and normalisation."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+
+from rdher_jax.ddpg import DDPGState, HParams, critic_target, make_ddpg
+
+try:
+    from rdher_jax.her import Transition
+except ImportError:  # the sampler module is optional for these tests
+    from flax import struct
+
+    @struct.dataclass
+    class Transition:  # type: ignore[no-redef]
+        """Stand-in with the field names of rdher_jax.her.Transition."""
+
+        obs: jax.Array
+        goal: jax.Array
+        action: jax.Array
+        reward: jax.Array
+        next_obs: jax.Array
+        next_goal: jax.Array
+        hindsight: jax.Array
+
+
+OBS, GOAL, ACT = 4, 3, 2
+MAX_U, CLIP_OBS, NORM_EPS, NORM_CLIP = 2.0, 6.0, 0.01, 5.0
+B = 32  # one batch size throughout, so each jitted function compiles once for the file
+
+# One small configuration shared by all tests, its functions jitted once (compiles dominate the
+# run time of this file).
+D = make_ddpg(
+    OBS,
+    GOAL,
+    ACT,
+    hidden=(8, 8),
+    max_u=MAX_U,
+    clip_obs=CLIP_OBS,
+    norm_eps=NORM_EPS,
+    norm_clip=NORM_CLIP,
+)
+init = jax.jit(D.init)
+update_normaliser = jax.jit(D.update_normaliser)
+normalise = jax.jit(D.normalise)
+act = jax.jit(D.act)
+explore = jax.jit(D.explore)
+update = jax.jit(D.update)
+target_update = jax.jit(D.target_update)
+
+
+@jax.jit
+def losses(state: DDPGState, batch: Transition, h: HParams) -> tuple[jax.Array, ...]:
+    """(critic loss, mean Q, actor loss) at the state's online parameters."""
+    c_loss, q_mean = D.critic_loss(state.critic_params, state, batch, h)
+    return c_loss, q_mean, D.actor_loss(state.actor_params, state, batch, h)
+
+
+def _batch(seed: int, n: int = B) -> Transition:
+    """Random batch with rewards in {-1, 0} and a mix of hindsight and real rows."""
+    rng = np.random.default_rng(seed)
+    f32 = lambda x: jnp.asarray(x, jnp.float32)
+    return Transition(
+        obs=f32(rng.normal(1.0, 2.0, (n, OBS))),
+        goal=f32(rng.normal(0.0, 2.0, (n, GOAL))),
+        action=f32(rng.uniform(-MAX_U, MAX_U, (n, ACT))),
+        reward=f32(-(rng.random(n) < 0.5).astype(np.float32)),
+        next_obs=f32(rng.normal(1.0, 2.0, (n, OBS))),
+        next_goal=f32(rng.normal(0.0, 2.0, (n, GOAL))),
+        hindsight=jnp.asarray(np.arange(n) % 3 == 0),
+    )
+
+
+def _state(h: HParams, norm_data: Transition) -> DDPGState:
+    """Initialised state with distinct target networks and a non-trivial normaliser."""
+    state = init(jax.random.key(0), h)
+    other = init(jax.random.key(1), h)
+    state = state.replace(
+        target_actor_params=other.actor_params, target_critic_params=other.critic_params
+    )
+    return update_normaliser(state, norm_data.obs, norm_data.goal)
+
+
+def _assert_trees_close(a, b, rtol: float = 1e-5, atol: float = 1e-6) -> None:
+    assert jax.tree.structure(a) == jax.tree.structure(b)
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=rtol, atol=atol)
+
+
+def _np_normalise(x: np.ndarray, data: np.ndarray, clip_obs: float, eps: float, clip: float):
+    """Baselines' Normalizer: std = sqrt(max(eps^2, E[x^2] - E[x]^2)), after _preprocess_og."""
+    data = np.clip(np.asarray(data, np.float64), -clip_obs, clip_obs)
+    mean = data.mean(0)
+    std = np.sqrt(np.maximum(eps**2, (data**2).mean(0) - mean**2))
+    x = np.clip(np.asarray(x, np.float64), -clip_obs, clip_obs)
+    return np.clip((x - mean) / std, -clip, clip), mean, std
+
+
+def _np_mlp(params, x: np.ndarray) -> np.ndarray:
+    layers = params["params"]["mlp"]
+    n_hidden = len(layers) - 1
+    for i in range(n_hidden):
+        layer = layers[f"hidden_{i}"]
+        x = np.maximum(x @ np.asarray(layer["kernel"], np.float64) + np.asarray(layer["bias"]), 0)
+    return x @ np.asarray(layers["out"]["kernel"], np.float64) + np.asarray(layers["out"]["bias"])
+
+
+def _np_actor(params, o, g, max_u):
+    return max_u * np.tanh(_np_mlp(params, np.concatenate([o, g], -1)))
+
+
+def _np_critic(params, o, g, a, max_u):
+    return _np_mlp(params, np.concatenate([o, g, a / max_u], -1))[:, 0]
+
+
+def test_hparams_default_and_overrides():
+    h = HParams.default(T=50, lambda_h=0.5)
+    for leaf in jax.tree.leaves(h):
+        assert leaf.shape == () and leaf.dtype == jnp.float32
+    assert float(h.gamma) == pytest.approx(0.98)
+    assert float(h.lambda_h) == 0.5 and float(h.lambda_r) == 1.0
+    assert float(HParams.default(T=100).gamma) == pytest.approx(0.99)
+    with pytest.raises(TypeError):
+        HParams.default(learning_rate=1e-3)
+
+
+def test_critic_target_table():
+    h = HParams.default(lambda_r=1.0, lambda_h=0.5, gamma=0.9)  # bounds: real -10, hindsight -5
+    table = np.array(
+        # reward, q_next, hindsight, expected y
+        [
+            [-1.0, -2.0, 0, -2.8],
+            [-1.0, -2.0, 1, -2.3],  # -0.5 - 1.8
+            [0.0, 3.0, 0, 0.0],  # 2.7 clipped at the top
+            [0.0, 3.0, 1, 0.0],
+            [-1.0, -20.0, 0, -10.0],  # -19 clipped at -1 / (1 - 0.9)
+            [-1.0, -20.0, 1, -5.0],  # -18.5 clipped at -0.5 / (1 - 0.9)
+            [0.0, -8.0, 1, -5.0],  # -7.2 is inside the real range but outside the hindsight one
+            [0.0, -8.0, 0, -7.2],
+            [-1.0, 0.0, 1, -0.5],
+            [-1.0, 0.0, 0, -1.0],
+        ],
+        np.float32,
+    )
+    reward, q_next = jnp.asarray(table[:, 0]), jnp.asarray(table[:, 1])
+    hindsight = jnp.asarray(table[:, 2] > 0)
+    y, grad = _target_and_grad(reward, q_next, hindsight, h)
+    np.testing.assert_allclose(np.asarray(y), table[:, 3], rtol=1e-6, atol=1e-6)
+    assert np.all(np.asarray(grad) == 0.0)  # the target is a constant for the critic
+
+    # Equal lambdas reduce to baselines' clip to [-1 / (1 - gamma), 0] = [-50, 0].
+    y, _ = _target_and_grad(reward, q_next - 60.0, hindsight, HParams.default())
+    expected = np.clip(table[:, 0] + 0.98 * (table[:, 1] - 60.0), -50.0, 0.0)
+    np.testing.assert_allclose(np.asarray(y), expected, rtol=1e-5)
+
+
+@jax.jit
+def _target_and_grad(reward, q_next, hindsight, h):
+    y = critic_target(reward, q_next, hindsight, h)
+    grad = jax.grad(lambda q: critic_target(reward, q, hindsight, h).sum())(q_next)
+    return y, grad
+
+
+def test_losses_match_numpy_forward_pass():
+    h = HParams.default(lambda_r=1.0, lambda_h=0.5, gamma=0.9, action_l2=0.7)
+    norm_data = _batch(2)
+    state = _state(h, norm_data)
+    batch = _batch(3)
+    # An out-of-range entry exercises the raw-input clip before normalisation.
+    obs = np.array(batch.obs)
+    obs[0, 0] = 500.0
+    batch = batch.replace(obs=jnp.asarray(obs))
+
+    c_loss, q_mean, a_loss = losses(state, batch, h)
+
+    def norm(x, data):
+        return _np_normalise(x, data, CLIP_OBS, NORM_EPS, NORM_CLIP)[0]
+
+    o, g = norm(batch.obs, norm_data.obs), norm(batch.goal, norm_data.goal)
+    o2, g2 = norm(batch.next_obs, norm_data.obs), norm(batch.next_goal, norm_data.goal)
+    a2 = _np_actor(state.target_actor_params, o2, g2, MAX_U)
+    q_next = _np_critic(state.target_critic_params, o2, g2, a2, MAX_U)
+    lam = np.where(np.asarray(batch.hindsight), 0.5, 1.0)
+    y = np.clip(lam * np.asarray(batch.reward) + 0.9 * q_next, -lam / 0.1, 0.0)
+    q = _np_critic(state.critic_params, o, g, np.asarray(batch.action, np.float64), MAX_U)
+    pi = _np_actor(state.actor_params, o, g, MAX_U)
+    q_pi = _np_critic(state.critic_params, o, g, pi, MAX_U)
+
+    assert float(c_loss) == pytest.approx(np.mean((q - y) ** 2), rel=1e-4, abs=1e-6)
+    assert float(q_mean) == pytest.approx(np.mean(q), rel=1e-4, abs=1e-6)
+    expected_actor = -np.mean(q_pi) + 0.7 * np.mean((pi / MAX_U) ** 2)
+    assert float(a_loss) == pytest.approx(expected_actor, rel=1e-4, abs=1e-6)
+    # The raw clip to clip_obs, not the normalised clip, bounds the entry set to 500.
+    assert abs(o[0, 0]) < NORM_CLIP - 0.5
+
+
+@jax.jit
+def _reference_step(state: DDPGState, adam_states, batch: Transition, h: HParams):
+    """Both gradients at the same parameters, then plain optax Adam steps."""
+    (c_loss, q_mean), c_g = jax.value_and_grad(D.critic_loss, has_aux=True)(
+        state.critic_params, state, batch, h
+    )
+    a_loss, a_g = jax.value_and_grad(D.actor_loss)(state.actor_params, state, batch, h)
+    a_s, c_s = adam_states
+    c_u, c_s = optax.adam(h.critic_lr).update(c_g, c_s, state.critic_params)
+    a_u, a_s = optax.adam(h.actor_lr).update(a_g, a_s, state.actor_params)
+    state = state.replace(
+        critic_params=optax.apply_updates(state.critic_params, c_u),
+        actor_params=optax.apply_updates(state.actor_params, a_u),
+    )
+    return state, (a_s, c_s), {"critic_loss": c_loss, "actor_loss": a_loss, "q_mean": q_mean}
+
+
+def test_update_applies_both_adam_steps_from_pre_update_params():
+    state0 = _state(HParams.default(), _batch(4))
+    # Rates differ from those seen at init: the HParams passed to update must be the ones used.
+    h = HParams.default(actor_lr=1e-2, critic_lr=3e-3)
+    # Two steps: Adam's first step is about lr * sign(grad), the second depends on magnitudes.
+    batches = [_batch(5 + i) for i in range(2)]
+
+    state, ref = state0, state0
+    adam_states = (
+        optax.adam(1.0).init(state0.actor_params),
+        optax.adam(1.0).init(state0.critic_params),
+    )
+    for b in batches:
+        state, metrics = update(state, b, h)
+        ref, adam_states, ref_metrics = _reference_step(ref, adam_states, b, h)
+
+    _assert_trees_close(state.critic_params, ref.critic_params)
+    _assert_trees_close(state.actor_params, ref.actor_params)
+    _assert_trees_close(metrics, ref_metrics, rtol=1e-5, atol=1e-7)
+    # Targets move only in target_update.
+    _assert_trees_close(state.target_actor_params, state0.target_actor_params, 0, 0)
+    _assert_trees_close(state.target_critic_params, state0.target_critic_params, 0, 0)
+
+
+def test_init_targets_equal_online_and_polyak_update():
+    h = HParams.default(polyak=0.9)
+    state = init(jax.random.key(0), h)
+    _assert_trees_close(state.target_actor_params, state.actor_params, 0, 0)
+    _assert_trees_close(state.target_critic_params, state.critic_params, 0, 0)
+
+    other = init(jax.random.key(1), h)
+    state = state.replace(
+        target_actor_params=other.actor_params, target_critic_params=other.critic_params
+    )
+    new = target_update(state, h)
+    mix = lambda t, o: jax.tree.map(lambda a, b: 0.9 * np.asarray(a) + 0.1 * np.asarray(b), t, o)
+    _assert_trees_close(new.target_actor_params, mix(other.actor_params, state.actor_params))
+    _assert_trees_close(new.target_critic_params, mix(other.critic_params, state.critic_params))
+    _assert_trees_close(new.actor_params, state.actor_params, 0, 0)
+    _assert_trees_close(new.critic_params, state.critic_params, 0, 0)
+
+
+def test_explore():
+    n = 4000
+    data = _batch(7, n)
+    state = _state(HParams.default(), _batch(7))
+    pi = np.asarray(act(state, data.obs, data.goal))
+    key = jax.random.key(8)
+
+    def sample(noise_eps: float, random_eps: float) -> np.ndarray:
+        h = HParams.default(noise_eps=noise_eps, random_eps=random_eps)
+        return np.asarray(explore(key, state, data.obs, data.goal, h))
+
+    np.testing.assert_array_equal(sample(0.0, 0.0), pi)
+
+    # Large noise: every action is clipped into the box and many sit on its faces.
+    a = sample(5.0, 0.0)
+    assert np.all(np.abs(a) <= MAX_U)
+    assert np.mean(np.abs(a) == MAX_U) > 0.5
+
+    # No noise: rows are either exactly pi or entirely uniform random, at rate random_eps.
+    p = 0.3
+    a = sample(0.0, p)
+    differs = a != pi
+    rows = differs.any(1)
+    np.testing.assert_array_equal(rows, differs.all(1))  # one coin per row
+    assert abs(rows.mean() - p) < 4 * np.sqrt(p * (1 - p) / n)
+    rand = a[rows]
+    assert np.all(np.abs(rand) <= MAX_U)
+    assert np.mean(np.abs(rand)) == pytest.approx(MAX_U / 2, abs=0.06)  # U(-max_u, max_u)
+
+
+def test_normaliser_matches_baselines_formula():
+    state = init(jax.random.key(0), HParams.default())
+    rng = np.random.default_rng(0)
+    obs_all, goal_all = [], []
+    for i in range(3):
+        obs = rng.normal(1.0 + i, 3.0, (B, OBS)).astype(np.float32)
+        obs[:, 1] = 0.5  # constant column: std falls back to eps
+        obs[0, 2] = 50.0 * (-1) ** i  # beyond clip_obs
+        goal = rng.normal(-1.0, 0.5 + i, (B, GOAL)).astype(np.float32)
+        obs_all.append(obs)
+        goal_all.append(goal)
+        state = update_normaliser(state, jnp.asarray(obs), jnp.asarray(goal))
+    obs_all, goal_all = np.concatenate(obs_all), np.concatenate(goal_all)
+
+    probe_obs = np.stack([obs_all[0], obs_all[0] + 1e3, obs_all[0] - 1e3]).astype(np.float32)
+    probe_obs[:, 1] = [0.5, 0.6, 0.4]  # +-0.1 / eps = +-10 std: clipped to +-norm_clip
+    probe_goal = goal_all[:3]
+    o_n, g_n = normalise(state, jnp.asarray(probe_obs), jnp.asarray(probe_goal))
+    exp_o, mean_o, std_o = _np_normalise(probe_obs, obs_all, CLIP_OBS, NORM_EPS, NORM_CLIP)
+    exp_g, mean_g, std_g = _np_normalise(probe_goal, goal_all, CLIP_OBS, NORM_EPS, NORM_CLIP)
+
+    np.testing.assert_allclose(np.asarray(state.obs_norm.mean), mean_o, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(state.obs_norm.std), std_o, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(state.goal_norm.mean), mean_g, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(state.goal_norm.std), std_g, rtol=1e-5, atol=1e-6)
+    assert float(state.obs_norm.std[1]) == pytest.approx(NORM_EPS)
+    np.testing.assert_allclose(np.asarray(o_n), exp_o, rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(np.asarray(g_n), exp_g, rtol=1e-4, atol=1e-4)
+    np.testing.assert_array_equal(np.asarray(o_n[1:, 1]), [NORM_CLIP, -NORM_CLIP])
+    assert np.all(np.abs(np.asarray(o_n)) <= NORM_CLIP)
+
+
+def test_updates_reduce_critic_loss_on_toy_problem():
+    h = HParams.default(critic_lr=1e-2)
+    batch = _batch(9)
+    # Reward depends on the input so the critic has something learnable to fit.
+    reward = -(np.asarray(batch.obs)[:, 0] > 1.0).astype(np.float32)
+    batch = batch.replace(reward=jnp.asarray(reward))
+    state = _state(h, batch)
+    critic_losses = []
+    for _ in range(100):
+        state, metrics = update(state, batch, h)
+        critic_losses.append(float(metrics["critic_loss"]))
+    assert np.all(np.isfinite(critic_losses))
+    assert np.mean(critic_losses[-10:]) < 0.3 * critic_losses[0]
+
+
+def _run(h: HParams, batches: Transition) -> tuple[DDPGState, dict[str, jax.Array]]:
+    state = D.init(jax.random.key(0), h)
+    state = D.update_normaliser(state, batches.obs[0], batches.goal[0])
+    state, metrics = D.update_many(state, batches, h)
+    return D.target_update(state, h), metrics
+
+
+def test_vmap_over_hparams_matches_separate_runs():
+    hs = [
+        HParams.default(actor_lr=1e-3, critic_lr=1e-3, polyak=0.95),
+        HParams.default(actor_lr=5e-3, critic_lr=2e-3, polyak=0.8, lambda_h=0.5),
+    ]
+    batch_list = [_batch(11 + i) for i in range(3)]
+    batches = jax.tree.map(lambda *x: jnp.asarray(np.stack(x)), *batch_list)
+    stacked = jax.tree.map(lambda *x: jnp.asarray(np.stack(x)), *hs)
+    v_state, v_metrics = jax.jit(jax.vmap(_run, in_axes=(0, None)))(stacked, batches)
+    for i, h in enumerate(hs):
+        # Separate run from the shared jitted pieces; this also checks update_many == n updates.
+        state = update_normaliser(init(jax.random.key(0), h), batch_list[0].obs, batch_list[0].goal)
+        metrics = []
+        for b in batch_list:
+            state, m = update(state, b, h)
+            metrics.append(m)
+        state = target_update(state, h)
+        metrics = jax.tree.map(lambda *x: np.stack(x), *metrics)
+        member = jax.tree.map(lambda x, i=i: np.asarray(x)[i], (v_state, v_metrics))
+        _assert_trees_close(member, (state, metrics), rtol=1e-5, atol=1e-6)
+    # The two members really trained differently.
+    diff = jax.tree.map(
+        lambda x: np.abs(np.asarray(x)[0] - np.asarray(x)[1]).max(), v_state.actor_params
+    )
+    assert max(jax.tree.leaves(diff)) > 1e-4
