@@ -67,7 +67,7 @@ class Config:
     env: str = _f("FetchReach", "task: one of " + ", ".join(ENV_NAMES))
     algo: str = _f("her", "ddpg (no relabelling) or her (hindsight relabelling)")
     seed: int = _f(0, "PRNG seed (0 <= seed < 2**32)")
-    epochs: int | None = _f(None, "training epochs; null: task default (FetchReach 10, else 50)")
+    epochs: int | None = _f(None, "training epochs; null: task default (FetchReach 5, else 50)")
     n_cycles: int | None = _f(None, "cycles per epoch; null: 10 for FetchReach, else 50")
     n_batches: int = _f(40, "gradient steps per cycle")
     batch_size: int = _f(256, "transitions per gradient step")
@@ -90,7 +90,9 @@ class Config:
     random_eps: float = _f(0.3, "probability of a uniformly random exploratory action")
     replay_k: int = _f(4, "HER ratio: goals are relabelled with probability 1 - 1/(1 + k)")
     lambda_r: float = _f(1.0, "RDHER reward weight on real transitions (>= 0); 1: plain HER")
-    lambda_h: float = _f(1.0, "RDHER reward weight on relabelled (hindsight) transitions (>= 0); 1: plain HER")
+    lambda_h: float = _f(
+        1.0, "RDHER reward weight on relabelled (hindsight) transitions (>= 0); 1: plain HER"
+    )
     gamma: float | None = _f(None, "discount in (0, 1); null: 1 - 1/T with T the episode length")
     run_dir: str | None = _f(
         None, "output directory; null: runs/<env>-<algo>-s<seed>-<YYYYmmdd-HHMMSS>"
@@ -283,7 +285,7 @@ def resolve(
         run_dir = cfg.resume
     out = dataclasses.replace(
         cfg,
-        epochs=cfg.epochs if cfg.epochs is not None else (10 if small else 50),
+        epochs=cfg.epochs if cfg.epochs is not None else (5 if small else 50),
         n_cycles=cfg.n_cycles if cfg.n_cycles is not None else (10 if small else 50),
         gamma=cfg.gamma if cfg.gamma is not None else 1.0 - 1.0 / horizon,
         run_dir=run_dir if run_dir is not None else default_run_dir(cfg, now),

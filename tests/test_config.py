@@ -165,7 +165,7 @@ def test_main_guard_passes_results_and_other_errors() -> None:
 def test_resolve() -> None:
     now = datetime.datetime(2024, 5, 6, 7, 8, 9)
     reach = resolve(Config(), now=now)
-    assert (reach.epochs, reach.n_cycles) == (10, 10)
+    assert (reach.epochs, reach.n_cycles) == (5, 10)
     assert reach.gamma == pytest.approx(0.98)
     assert reach.run_dir == str(Path("runs") / "FetchReach-her-s0-20240506-070809")
     slide = resolve(parse_args(["env=FetchSlide", "algo=ddpg", "seed=2"]), now=now)

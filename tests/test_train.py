@@ -81,7 +81,7 @@ def test_resume_after_sigkill_equals_uninterrupted(tmp_path):
     assert ref.returncode == 0, ref_err
     a, b = read_csv(tmp_path / "ref" / "metrics.csv"), read_csv(killed_dir / "metrics.csv")
     assert len(a) == len(b) == 8
-    for ra, rb in zip(a, b):
+    for ra, rb in zip(a, b, strict=True):
         ra.pop("wall_time"), rb.pop("wall_time")
         assert ra == rb
 
