@@ -34,49 +34,15 @@ os.environ.setdefault("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 from rdher_jax.envs import scene  # noqa: E402
+from rdher_jax.envs.physics import TASKS as TASK_SPECS  # noqa: E402
 
 N_STEPS = 50
 N_SUBSTEPS = 20
 RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "scene_edits.md")
 
 
-@dataclass(frozen=True)
-class TaskConfig:
-    """The constructor arguments of gymnasium-robotics' ``MujocoFetch*Env``."""
-
-    has_object: bool
-    block_gripper: bool
-    gripper_extra_height: float
-    target_in_the_air: bool
-    target_offset: tuple[float, float, float]
-    obj_range: float
-    target_range: float
-    initial_qpos: dict[str, float | list[float]]
-
-
-_BASE = {"robot0:slide0": 0.405, "robot0:slide1": 0.48, "robot0:slide2": 0.0}
-_BLOCK = [1.25, 0.53, 0.4, 1.0, 0.0, 0.0, 0.0]
-TASKS = {
-    "FetchReach": TaskConfig(
-        False, True, 0.2, True, (0, 0, 0), 0.15, 0.15, {**_BASE, "robot0:slide0": 0.4049}
-    ),
-    "FetchPush": TaskConfig(
-        True, True, 0.0, False, (0, 0, 0), 0.15, 0.15, {**_BASE, "object0:joint": _BLOCK}
-    ),
-    "FetchSlide": TaskConfig(
-        True,
-        True,
-        -0.02,
-        False,
-        (0.4, 0, 0),
-        0.1,
-        0.3,
-        {**_BASE, "robot0:slide0": 0.05, "object0:joint": [1.7, 1.1, 0.41, 1.0, 0.0, 0.0, 0.0]},
-    ),
-    "FetchPickAndPlace": TaskConfig(
-        True, False, 0.2, True, (0, 0, 0), 0.15, 0.15, {**_BASE, "object0:joint": _BLOCK}
-    ),
-}
+# The task constants (gymnasium-robotics' MujocoFetch*Env arguments) are the env package's.
+TASKS = TASK_SPECS
 
 
 # ---------------------------------------------------------------------------------------------

@@ -9,24 +9,7 @@ import optax
 import pytest
 
 from rdher_jax.ddpg import DDPGState, HParams, critic_target, make_ddpg
-
-try:
-    from rdher_jax.her import Transition
-except ImportError:  # the sampler module is optional for these tests
-    from flax import struct
-
-    @struct.dataclass
-    class Transition:  # type: ignore[no-redef]
-        """Stand-in with the field names of rdher_jax.her.Transition."""
-
-        obs: jax.Array
-        goal: jax.Array
-        action: jax.Array
-        reward: jax.Array
-        next_obs: jax.Array
-        next_goal: jax.Array
-        hindsight: jax.Array
-
+from rdher_jax.her import Transition
 
 OBS, GOAL, ACT = 4, 3, 2
 MAX_U, CLIP_OBS, NORM_EPS, NORM_CLIP = 2.0, 6.0, 0.01, 5.0
