@@ -69,7 +69,10 @@ class NativeBackend:
         if n not in self._batches:
             import mjbatch
 
-            b = mjbatch.Batch(self.setup.model, n, num_threads=min(self.num_threads, n))
+            # Block-gripper tasks observe current kinematics (gymnasium-robotics runs mj_forward
+            # after the step), so their batch ends every step with a forward on the worker.
+            b = mjbatch.Batch(self.setup.model, n, num_threads=min(self.num_threads, n),
+                              forward=self.setup.spec.block_gripper)
             views = {f: b.bind(f) for f in
                      ("state", "site_xpos", "site_xmat", "xpos", "xquat", "cdof", "subtree_com")}
             self._batches[n] = (b, views)
@@ -151,9 +154,12 @@ class NativeBackend:
             b.step(nstep=N_SUBSTEPS)
             states = v["state"].copy()
             if s.spec.block_gripper:
-                # _step_callback: fingers held closed, then mj_forward.
+                # _step_callback: fingers held closed, then mj_forward. The batch already ran the
+                # forward (forward=True); zeroing the finger joints afterwards moves only the
+                # finger bodies, which no observed site or gripper-body pose depends on, so a
+                # second forward would change the readout by round-off only (the conformance
+                # tests hold it to gymnasium-robotics at 1e-6).
                 states[:, self._qpos.start + s.finger_qposadr] = 0.0
-                return self._forward_and_pack(b, v, states, lead)
             # PickAndPlace: no forward; kinematics stay one substep behind qpos, as in gymnasium.
             raw, ref = self._readout(v, states)
             return self._pack(states, ref, lead), raw.astype(np.float32).reshape(*lead, RAW_SIZE)

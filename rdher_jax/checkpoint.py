@@ -14,6 +14,7 @@ ignored on restore and removed by the next writer; the previous step stays resto
 import contextlib
 import json
 import shutil
+import time
 import uuid
 from collections.abc import Mapping
 from pathlib import Path
@@ -152,7 +153,16 @@ class _Slot:
         if not self.directory.is_dir():
             return None
         if self.read_only:
-            self.mgr.reload()  # another process may be writing this run
+            # Another process may be writing this run, and deletes the previous step right
+            # after renaming a new one into place: a reload that catches that moment retries.
+            for attempt in range(5):
+                try:
+                    self.mgr.reload()
+                    break
+                except FileNotFoundError:
+                    if attempt == 4:
+                        raise
+                    time.sleep(0.05)
         return self.mgr.latest_step()
 
     def _check_writable(self) -> None:
