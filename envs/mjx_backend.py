@@ -4,7 +4,7 @@ It steps the MJX-edited scene (``scene.load_model(task, "mjx")``); the task logi
 and the reset template are the same as the native backend's (``physics.Setup``).
 
 On CPU, XLA's fusion emitters fuse MJX's kinematic tree into fusions whose recomputation grows
-with the batch; ``rdher_jax.envs.cpu_xla_flags()`` lists the flags that avoid it (set them in
+with the batch; ``rdher_jax.envs.CPU_XLA_FLAGS`` lists the flags that avoid it (set them in
 ``XLA_FLAGS`` before JAX starts). MJX on CPU is for correctness checks, not for training.
 """
 
