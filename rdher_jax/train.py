@@ -96,6 +96,9 @@ def train(cfg: Config, argv: list[str] | None = None, log=print) -> dict:
         csv.truncate_after(start)
         log(f"resuming {run_dir} after epoch {start}")
     else:
+        if cfg.resume is not None:  # killed before its first checkpoint: start over
+            csv.truncate_after(0)
+            log(f"{run_dir} has no checkpoint yet; starting it over")
         write_text_atomic(run_dir / "config.yaml", to_yaml(cfg))
         write_json_atomic(run_dir / "run_info.json", run_info(cfg, argv))
 
