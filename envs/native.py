@@ -144,7 +144,10 @@ class NativeBackend:
             b, v = self._batch(n)
             return self._forward_and_pack(b, v, states, lead)
 
-    def host_step(self, bits, delta, grip):
+    def host_step(self, bits, delta, grip, clock=None):
+        """One env step of a batch. ``clock(part)``, if given, is called as each part ends
+        ("unpack", "step", "readout", "pack"): the env benchmark times the parts with it."""
+        mark = clock or (lambda part: None)
         s, off = self.setup, self.off
         lead = delta.shape[:-1]
         full = np.ascontiguousarray(bits).reshape(-1, 2 * self.width).view(np.float64)
@@ -160,11 +163,13 @@ class NativeBackend:
             g = np.asarray(grip).reshape(n, 1).astype(np.float64)
             ctrl = states[:, self._qpos][:, s.act_qposadr] + g
             states[:, off["CTRL"] : off["CTRL"] + len(s.act_qposadr)] = ctrl
+        mark("unpack")
         with self._lock:
             b, v = self._batch(n)
             v["state"][:] = states
             b.step(nstep=N_SUBSTEPS)
             states = v["state"].copy()
+            mark("step")
             if s.spec.block_gripper:
                 # _step_callback: fingers held closed, then mj_forward. The batch already ran the
                 # forward (forward=True); zeroing the finger joints afterwards moves only the
@@ -174,7 +179,10 @@ class NativeBackend:
                 states[:, self._qpos.start + s.finger_qposadr] = 0.0
             # PickAndPlace: no forward; kinematics stay one substep behind qpos, as in gymnasium.
             raw, ref = self._readout(v, states)
-            return self._pack(states, ref, lead), raw.astype(np.float32).reshape(*lead, RAW_SIZE)
+            mark("readout")
+            out = self._pack(states, ref, lead), raw.astype(np.float32).reshape(*lead, RAW_SIZE)
+            mark("pack")
+            return out
 
     # ------------------------------------------------------------------ JAX side
     def _shapes(self, lead):
