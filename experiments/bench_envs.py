@@ -718,7 +718,7 @@ def write_report(res: dict, path: str) -> str:
             "",
             "Microseconds per batched env step (one `host_step` call). `host_step` in jit is "
             "timed inside the callback during the jitted rollouts above; its parts are timed "
-            "with `time.perf_counter` in a copy of `host_step` checked bit-equal to it.",
+            "with `time.perf_counter` through `host_step`'s own `clock` hook.",
             "",
             head,
             "|---|" + "---:|" * len(bs),
