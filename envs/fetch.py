@@ -143,11 +143,11 @@ class FetchEnv:
             achieved = grip_pos
         return {"observation": obs, "achieved_goal": achieved, "desired_goal": goal}
 
-    def _state(self, data, raw, goal, t, rng, reward=None) -> State:
+    def _state(self, data, raw, goal, t, rng, after_step: bool) -> State:
         obs = self._obs(raw, goal)
         success = self.is_success(obs["achieved_goal"], goal)
-        if reward is None:
-            reward = jnp.zeros((), jnp.float32)
+        reward = (self.compute_reward(obs["achieved_goal"], goal) if after_step
+                  else jnp.zeros((), jnp.float32))
         return State(
             data=data,
             obs=obs,
@@ -177,7 +177,7 @@ class FetchEnv:
 
     def _reset_physics(self, qpos, qvel, goal, rng) -> State:
         data, raw = self.backend.reset(qpos, qvel)
-        state = self._state(data, raw, goal, jnp.zeros((), jnp.int32), rng)
+        state = self._state(data, raw, goal, jnp.zeros((), jnp.int32), rng, after_step=False)
         if self.auto_reset:
             state.info["final_obs"] = state.obs
         return state
@@ -190,11 +190,8 @@ class FetchEnv:
         delta = a[..., :3] * jnp.float32(0.05)
         grip = a[..., 3] if not self.spec.block_gripper else jnp.zeros_like(a[..., 3])
         data, raw = self.backend.step(state.data, delta, grip)
-        goal = state.info["goal"]
-        t = state.info["t"] + 1
-        obs = self._obs(raw, goal)
-        reward = self.compute_reward(obs["achieved_goal"], goal)
-        new = self._state(data, raw, goal, t, state.info["rng"], reward)
+        new = self._state(data, raw, state.info["goal"], state.info["t"] + 1, state.info["rng"],
+                          after_step=True)
         if not self.auto_reset:
             return new
         new.info["final_obs"] = new.obs

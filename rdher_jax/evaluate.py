@@ -47,9 +47,9 @@ def evaluate(run_dir: Path, episodes: int = 100, seed: int = 0, backend: str | N
     if backend is not None or scene is not None:
         cfg = dataclasses.replace(cfg, backend=backend or cfg.backend,
                                   scene=scene or ("auto" if backend else cfg.scene))
-    cfg = dataclasses.replace(cfg, buffer_size=cfg.num_envs * 50, n_test_rollouts=episodes)
+    cfg = dataclasses.replace(cfg, n_test_rollouts=episodes)
     env, trainer = build(cfg)
-    template = jax.jit(trainer.init)(jax.random.PRNGKey(0), trainer.hparams).ddpg
+    template = jax.jit(trainer.ddpg.init)(jax.random.PRNGKey(0), trainer.hparams)
     ckpt = Checkpointer(run_dir, read_only=True)
     if ckpt.best_epoch() is None:
         raise ConfigError(f"{run_dir} has no best-policy checkpoint yet")

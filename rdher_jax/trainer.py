@@ -20,10 +20,9 @@ import jax.numpy as jnp
 from flax import struct
 
 from . import buffer as rb
+from .config import ALGO_NAMES
 from .ddpg import DDPGState, HParams, make_ddpg
 from .her import relabel_prob_from_k, sample_her
-
-ALGOS = ("ddpg", "her")
 
 
 @struct.dataclass
@@ -71,8 +70,8 @@ def hparams_from_config(cfg) -> HParams:
 def make_trainer(cfg, env) -> Trainer:
     """Build the pure training functions for a resolved ``Config`` and an env without
     auto-reset (episodes are reset explicitly at the start of each cycle, all in step)."""
-    if cfg.algo not in ALGOS:
-        raise ValueError(f"unknown algo {cfg.algo!r}; valid: {', '.join(ALGOS)}")
+    if cfg.algo not in ALGO_NAMES:
+        raise ValueError(f"unknown algo {cfg.algo!r}; valid: {', '.join(ALGO_NAMES)}")
     T = env.episode_length
     obs_dim, goal_dim, act_dim = env.obs_size, env.goal_size, env.action_size
     agent = make_ddpg(obs_dim, goal_dim, act_dim, hidden=(cfg.hidden,) * cfg.layers)

@@ -1,6 +1,9 @@
 import os
 
-# MJX on CPU needs these XLA flags (see README); they must be set before JAX starts.
-_FLAGS = "--xla_cpu_use_fusion_emitters=false"
-if _FLAGS not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + _FLAGS).strip()
+from rdher_jax.envs import CPU_XLA_FLAGS
+
+# MJX on CPU needs these XLA flags (see README, "MJX on a CPU"). XLA reads them when JAX first
+# initialises a backend, which importing the package above does not do.
+_missing = [f for f in CPU_XLA_FLAGS if f not in os.environ.get("XLA_FLAGS", "")]
+if _missing:
+    os.environ["XLA_FLAGS"] = " ".join([os.environ.get("XLA_FLAGS", ""), *_missing]).strip()
