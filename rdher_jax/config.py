@@ -24,8 +24,18 @@ from omegaconf import OmegaConf
 from omegaconf.errors import ConfigKeyError, OmegaConfBaseException
 
 # Kept equal to the env package's own list; a test checks that they agree once both exist.
-ENV_NAMES: tuple[str, ...] = ("FetchReach", "FetchPush", "FetchSlide", "FetchPickAndPlace")
-ALGO_NAMES: tuple[str, ...] = ("ddpg", "her")
+ENV_NAMES: tuple[str, ...] = ("FetchReach", "FetchPush", "FetchSlide", "FetchPickAndPlace",
+                              "FetchReachMoving", "FetchPushMoving")
+ALGO_NAMES: tuple[str, ...] = ("ddpg", "her", "archer", "cher", "dher", "rdher")
+# RDHER's reward weights (lambda_r, lambda_h) per task, the paper's choices (section 5.3); the
+# moving-goal tasks take those of their static counterparts. ARCHER has no published Fetch
+# weights and no public code, so it uses the same.
+PAPER_LAMBDAS: dict[str, tuple[float, float]] = {
+    "FetchReach": (2.0, 1.0), "FetchPickAndPlace": (2.0, 1.0),
+    "FetchPush": (4.0, 0.5), "FetchSlide": (4.0, 0.5),
+    "FetchReachMoving": (2.0, 1.0), "FetchPushMoving": (4.0, 0.5),
+}
+WEIGHTED_ALGOS: tuple[str, ...] = ("archer", "rdher")
 BACKENDS: tuple[str, ...] = ("auto", "mujoco", "mjx")
 SCENES: tuple[str, ...] = ("auto", "original", "mjx")
 
@@ -65,7 +75,12 @@ class Config:
     """Hyper-parameters and run options of one training run."""
 
     env: str = _f("FetchReach", "task: one of " + ", ".join(ENV_NAMES))
-    algo: str = _f("her", "ddpg (no relabelling) or her (hindsight relabelling)")
+    algo: str = _f(
+        "her",
+        "ddpg (no relabelling), her ('future' relabelling), archer (her with reward weights), "
+        "cher (curriculum-selected her goals), dher (goal matching and combination across "
+        "failed episodes, mixed with her), rdher (dher with reward weights)",
+    )
     seed: int = _f(0, "PRNG seed (0 <= seed < 2**32)")
     epochs: int | None = _f(None, "training epochs; null: task default (FetchReach 5, else 50)")
     n_cycles: int | None = _f(None, "cycles per epoch; null: 10 for FetchReach, else 50")
@@ -89,9 +104,30 @@ class Config:
     noise_eps: float = _f(0.2, "std of Gaussian exploration noise, as a fraction of max action")
     random_eps: float = _f(0.3, "probability of a uniformly random exploratory action")
     replay_k: int = _f(4, "HER ratio: goals are relabelled with probability 1 - 1/(1 + k)")
-    lambda_r: float = _f(1.0, "RDHER reward weight on real transitions (>= 0); 1: plain HER")
-    lambda_h: float = _f(
-        1.0, "RDHER reward weight on relabelled (hindsight) transitions (>= 0); 1: plain HER"
+    lambda_r: float | None = _f(
+        None, "reward weight on real transitions (>= 0); null: the paper's per-task value for "
+        "rdher and archer (Reach, PickAndPlace 2; Push, Slide 4), else 1"
+    )
+    lambda_h: float | None = _f(
+        None, "reward weight on hindsight (HER-relabelled or DHER-combined) transitions (>= 0); "
+        "null: the paper's per-task value for rdher and archer (Reach, PickAndPlace 1; Push, "
+        "Slide 0.5), else 1"
+    )
+    dher_fraction: float = _f(
+        0.8, "dher/rdher: at most this fraction of a batch are combined transitions, scaled by "
+        "(1 - success rate of the last 100 episodes), as in the DHER authors' code"
+    )
+    dher_tol: float = _f(0.01, "dher/rdher: goal-matching grid cell in metres (authors: 1 cm)")
+    dher_records: int = _f(65536, "dher/rdher: size of the ring of recorded goal matches")
+    dher_partners: int = _f(
+        8, "dher/rdher: stored achieved points recorded per new desired-goal cell each cycle"
+    )
+    cher_candidates: int | None = _f(
+        None, "cher: 'future' candidates a batch is selected from; null: 2 x batch_size"
+    )
+    cher_sample: int = _f(3, "cher: candidates scored per greedy pick (lazier-than-lazy)")
+    cher_growth: float = _f(
+        1.0001, "cher: proximity weight = cher_growth ** (gradient steps since the epoch began)"
     )
     gamma: float | None = _f(None, "discount in (0, 1); null: 1 - 1/T with T the episode length")
     run_dir: str | None = _f(
@@ -171,6 +207,10 @@ def validate(cfg: Config) -> Config:
         "hidden",
         "layers",
         "checkpoint_every",
+        "dher_records",
+        "dher_partners",
+        "cher_candidates",
+        "cher_sample",
     )
     for name in positive:
         v = getattr(cfg, name)
@@ -190,6 +230,9 @@ def validate(cfg: Config) -> Config:
         "lambda_r",
         "lambda_h",
         "gamma",
+        "dher_fraction",
+        "dher_tol",
+        "cher_growth",
     )
     for name in floats:
         v = getattr(cfg, name)
@@ -200,7 +243,23 @@ def validate(cfg: Config) -> Config:
         v = getattr(cfg, name)
         _check(0.0 <= v <= 1.0, f"{name} must be in [0, 1], got {v}")
     for name in ("action_l2", "noise_eps", "lambda_r", "lambda_h"):
-        _check(getattr(cfg, name) >= 0, f"{name} must be >= 0, got {getattr(cfg, name)}")
+        v = getattr(cfg, name)
+        _check(v is None or v >= 0, f"{name} must be >= 0, got {v}")
+    _check(0.0 <= cfg.dher_fraction <= 1.0,
+           f"dher_fraction must be in [0, 1], got {cfg.dher_fraction}")
+    _check(cfg.dher_tol > 0, f"dher_tol must be > 0, got {cfg.dher_tol}")
+    _check(cfg.cher_growth >= 1.0, f"cher_growth must be >= 1, got {cfg.cher_growth}")
+    if cfg.cher_candidates is not None:
+        _check(cfg.cher_candidates >= cfg.batch_size,
+               f"cher_candidates ({cfg.cher_candidates}) must be >= batch_size "
+               f"({cfg.batch_size})")
+        _check(cfg.cher_sample <= cfg.cher_candidates,
+               f"cher_sample ({cfg.cher_sample}) must be <= cher_candidates "
+               f"({cfg.cher_candidates})")
+    need = cfg.num_envs * (DEFAULT_HORIZON + 1) * (1 + cfg.dher_partners)
+    _check(cfg.dher_records >= need,
+           f"dher_records ({cfg.dher_records}) must be >= num_envs * 51 * (1 + dher_partners) "
+           f"= {need}, the matches one cycle can record")
     _check(cfg.gamma is None or 0.0 < cfg.gamma < 1.0, f"gamma must be in (0, 1), got {cfg.gamma}")
     for name in ("run_dir", "resume"):
         v = getattr(cfg, name)
@@ -270,11 +329,13 @@ def default_run_dir(cfg: Config, now: datetime.datetime | None = None) -> str:
 def resolve(
     cfg: Config, horizon: int = DEFAULT_HORIZON, now: datetime.datetime | None = None
 ) -> Config:
-    """Fill every ``None`` default: epochs, n_cycles, gamma (1 - 1/horizon) and run_dir.
+    """Fill every ``None`` default: epochs, n_cycles, gamma (1 - 1/horizon), the reward weights
+    (per task for rdher and archer, else 1) and run_dir.
 
     With ``resume`` set, ``run_dir`` is the resumed directory.
     """
-    small = cfg.env == "FetchReach"
+    small = cfg.env in ("FetchReach", "FetchReachMoving")
+    lam_r, lam_h = PAPER_LAMBDAS[cfg.env] if cfg.algo in WEIGHTED_ALGOS else (1.0, 1.0)
     run_dir = cfg.run_dir
     if cfg.resume is not None:
         if run_dir is not None and Path(run_dir).resolve() != Path(cfg.resume).resolve():
@@ -288,6 +349,8 @@ def resolve(
         epochs=cfg.epochs if cfg.epochs is not None else (5 if small else 50),
         n_cycles=cfg.n_cycles if cfg.n_cycles is not None else (10 if small else 50),
         gamma=cfg.gamma if cfg.gamma is not None else 1.0 - 1.0 / horizon,
+        lambda_r=cfg.lambda_r if cfg.lambda_r is not None else lam_r,
+        lambda_h=cfg.lambda_h if cfg.lambda_h is not None else lam_h,
         run_dir=run_dir if run_dir is not None else default_run_dir(cfg, now),
     )
     return validate(out)

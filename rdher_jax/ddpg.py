@@ -30,12 +30,15 @@ class Batch(Protocol):
     reward: jax.Array  # (B,)
     next_obs: jax.Array  # (B, obs_dim)
     next_goal: jax.Array  # (B, goal_dim)
-    hindsight: jax.Array  # (B,) bool: goal was relabelled
+    hindsight: jax.Array  # (B,) bool: goal is not the stored one (HER or DHER row)
 
 
 @struct.dataclass
 class HParams:
-    """Sweepable hyperparameters; every field is a float32 scalar array."""
+    """Sweepable learner hyperparameters; every field is a float32 scalar array.
+
+    Relabelling has its own (``rdher_jax.relabel.RelabelParams``).
+    """
 
     actor_lr: jax.Array
     critic_lr: jax.Array
@@ -43,7 +46,6 @@ class HParams:
     action_l2: jax.Array
     noise_eps: jax.Array  # Gaussian exploration std, as a fraction of max_u
     random_eps: jax.Array  # probability of a uniform random action (per row)
-    relabel_prob: jax.Array  # used by the HER sampler
     lambda_r: jax.Array  # reward weight of real transitions (RDHER)
     lambda_h: jax.Array  # reward weight of hindsight transitions (RDHER)
     gamma: jax.Array
@@ -66,7 +68,6 @@ class HParams:
             action_l2=1.0,
             noise_eps=0.2,
             random_eps=0.3,
-            relabel_prob=0.8,
             lambda_r=1.0,
             lambda_h=1.0,
             gamma=1.0 - 1.0 / T,

@@ -49,7 +49,7 @@ def evaluate(run_dir: Path, episodes: int = 100, seed: int = 0, backend: str | N
                                   scene=scene or ("auto" if backend else cfg.scene))
     cfg = dataclasses.replace(cfg, n_test_rollouts=episodes)
     env, trainer = build(cfg)
-    template = jax.jit(trainer.ddpg.init)(jax.random.PRNGKey(0), trainer.hparams)
+    template = jax.jit(trainer.ddpg.init)(jax.random.PRNGKey(0), trainer.hparams.ddpg)
     ckpt = Checkpointer(run_dir, read_only=True)
     if ckpt.best_epoch() is None:
         raise ConfigError(f"{run_dir} has no best-policy checkpoint yet")

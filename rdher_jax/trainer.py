@@ -7,8 +7,9 @@
   ``n_test_rollouts`` deterministic test episodes. This is what the CLI jits once and calls per
   epoch; a sweep vmaps it over seeds and hyperparameters.
 
-Everything a user may sweep is in ``ddpg.HParams`` (arrays, traced); everything that fixes a
-shape is in the frozen ``config.Config``.
+Everything a user may sweep is in ``Hyper`` (``ddpg.HParams`` and ``relabel.RelabelParams``,
+arrays, traced); everything that fixes a shape is in the frozen ``config.Config``. How goals are
+relabelled is one ``relabel.Relabeller`` (HER, CHER or DHER) whose state lives in ``TrainState``.
 """
 
 from __future__ import annotations
@@ -20,9 +21,18 @@ import jax.numpy as jnp
 from flax import struct
 
 from . import buffer as rb
+from . import relabel
 from .config import ALGO_NAMES
 from .ddpg import DDPGState, HParams, make_ddpg
-from .her import relabel_prob_from_k, sample_her
+from .relabel import SOURCE_NAMES, RelabelParams
+
+
+@struct.dataclass
+class Hyper:
+    """Every traced hyperparameter of a run: the learner's and relabelling's."""
+
+    ddpg: HParams
+    relabel: RelabelParams
 
 
 @struct.dataclass
@@ -31,6 +41,7 @@ class TrainState:
 
     ddpg: DDPGState
     buffer: rb.BufferState
+    relabel: Any  # the relabelling strategy's state (``()`` for HER and CHER)
     key: jax.Array
     env_steps: jax.Array  # int32, total over all parallel envs
     updates: jax.Array  # int32 gradient steps
@@ -46,6 +57,18 @@ class EpochMetrics:
     q_mean: jax.Array
     env_steps: jax.Array
     updates: jax.Array
+    # Share of training rows per source (real, HER-relabelled, DHER-combined).
+    frac_her: jax.Array
+    frac_dher: jax.Array
+    # Hindsight bias per source: mean Q(s, a, g) minus the discounted return the row's goal
+    # received in its stored episode, weighted as the critic was trained (lambda_r / lambda_h)
+    # and unweighted; NaN where a source had no rows.
+    bias_real: jax.Array
+    bias_her: jax.Array
+    bias_dher: jax.Array
+    bias_unw_real: jax.Array
+    bias_unw_her: jax.Array
+    bias_unw_dher: jax.Array
 
 
 class Trainer(NamedTuple):
@@ -55,15 +78,18 @@ class Trainer(NamedTuple):
     evaluate: Any
     hparams: Any
     ddpg: Any
+    relabeller: Any
 
 
-def hparams_from_config(cfg) -> HParams:
+def hparams_from_config(cfg) -> Hyper:
     """The traced hyperparameters of a (resolved) config."""
-    relabel = relabel_prob_from_k(cfg.replay_k) if cfg.algo != "ddpg" else 0.0
-    return HParams.default(
-        actor_lr=cfg.actor_lr, critic_lr=cfg.critic_lr, polyak=cfg.polyak,
-        action_l2=cfg.action_l2, noise_eps=cfg.noise_eps, random_eps=cfg.random_eps,
-        relabel_prob=relabel, lambda_r=cfg.lambda_r, lambda_h=cfg.lambda_h, gamma=cfg.gamma,
+    return Hyper(
+        ddpg=HParams.default(
+            actor_lr=cfg.actor_lr, critic_lr=cfg.critic_lr, polyak=cfg.polyak,
+            action_l2=cfg.action_l2, noise_eps=cfg.noise_eps, random_eps=cfg.random_eps,
+            lambda_r=cfg.lambda_r, lambda_h=cfg.lambda_h, gamma=cfg.gamma,
+        ),
+        relabel=relabel.params_from_config(cfg),
     )
 
 
@@ -77,6 +103,9 @@ def make_trainer(cfg, env) -> Trainer:
     agent = make_ddpg(obs_dim, goal_dim, act_dim, hidden=(cfg.hidden,) * cfg.layers)
     n_envs, n_test = cfg.num_envs, cfg.n_test_rollouts
     v_reset, v_step = jax.vmap(env.reset), jax.vmap(env.step)
+    capacity_episodes = rb.init(cfg.buffer_size, T, 1, 1, 1).capacity_episodes
+    relabeller = relabel.make_relabeller(cfg, env.compute_reward, capacity_episodes, T, goal_dim)
+    updates_per_epoch = cfg.n_cycles * cfg.n_batches
 
     def rollout(key, ds: DDPGState, hp: HParams, n: int, explore: bool) -> rb.Episode:
         """``n`` episodes of T steps from fresh resets; returns them episode-major."""
@@ -101,51 +130,78 @@ def make_trainer(cfg, env) -> Trainer:
             action=jnp.swapaxes(a, 0, 1),
         ), last.info["is_success"]
 
-    def init(key, hp: HParams) -> TrainState:
+    def init(key, hp: Hyper) -> TrainState:
         k_agent, k_run = jax.random.split(key)
         return TrainState(
-            ddpg=agent.init(k_agent, hp),
+            ddpg=agent.init(k_agent, hp.ddpg),
             buffer=rb.init(cfg.buffer_size, T, obs_dim, goal_dim, act_dim),
+            relabel=relabeller.init(),
             key=k_run,
             env_steps=jnp.zeros((), jnp.int32),
             updates=jnp.zeros((), jnp.int32),
             epoch=jnp.zeros((), jnp.int32),
         )
 
-    def cycle(ts: TrainState, hp: HParams):
-        key, k_roll, k_norm, k_upd = jax.random.split(ts.key, 4)
-        ep, success = rollout(k_roll, ts.ddpg, hp, n_envs, explore=True)
+    def bias(key, ts: TrainState, ds: DDPGState, hp: Hyper):
+        """Per-source sums and counts of Q minus the observed return, on one fresh batch."""
+        _, b = relabeller.sample(key, ts.relabel, ts.buffer, hp.relabel, jnp.int32(0))
+        obs, goal = agent.normalise(ds, b.obs, b.goal)
+        q = agent.critic.apply(ds.critic_params, obs, goal, b.action)
+        ret = relabel.observed_return(ts.buffer, b, env.compute_reward, hp.ddpg.gamma)
+        lam = jnp.where(b.hindsight, hp.ddpg.lambda_h, hp.ddpg.lambda_r)
+        one_hot = (b.source[:, None] == jnp.arange(len(SOURCE_NAMES))[None, :]).astype(q.dtype)
+        return {"w": (q - lam * ret) @ one_hot, "u": (q - ret) @ one_hot, "n": one_hot.sum(0)}
+
+    def cycle(ts: TrainState, hp: Hyper):
+        key, k_roll, k_norm, k_upd, k_bias = jax.random.split(ts.key, 5)
+        ep, success = rollout(k_roll, ts.ddpg, hp.ddpg, n_envs, explore=True)
         buf = rb.add(ts.buffer, ep)
-        # Normaliser: statistics of relabelled transitions of the new episodes (baselines).
-        new = rb.add(rb.init(n_envs * T, T, obs_dim, goal_dim, act_dim), ep)
-        norm_batch = sample_her(k_norm, new, n_envs * T, hp.relabel_prob, env.compute_reward)
-        ds = agent.update_normaliser(ts.ddpg, norm_batch.obs, norm_batch.goal)
+        rs = relabeller.update(ts.relabel, buf, hp.relabel)
+        # Normaliser: statistics of 'future'-relabelled transitions of the new episodes
+        # (baselines, and the DHER and CHER code built on it, do this for every strategy).
+        norm = relabel.sample_episodes(k_norm, ep, n_envs * T, hp.relabel.relabel_prob,
+                                       env.compute_reward)
+        ds = agent.update_normaliser(ts.ddpg, norm.obs, norm.goal)
+        step0 = ts.updates % updates_per_epoch
 
-        def update(ds, k):
-            batch = sample_her(k, buf, cfg.batch_size, hp.relabel_prob, env.compute_reward)
-            return agent.update(ds, batch, hp)
+        def update(carry, x):
+            ds, rs = carry
+            k, i = x
+            rs, batch = relabeller.sample(k, rs, buf, hp.relabel, step0 + i)
+            ds, m = agent.update(ds, batch, hp.ddpg)
+            m["frac_her"] = jnp.mean(batch.source == relabel.HER)
+            m["frac_dher"] = jnp.mean(batch.source == relabel.DHER)
+            return (ds, rs), m
 
-        ds, m = jax.lax.scan(update, ds, jax.random.split(k_upd, cfg.n_batches))
-        ds = agent.target_update(ds, hp)
+        xs = (jax.random.split(k_upd, cfg.n_batches), jnp.arange(cfg.n_batches, dtype=jnp.int32))
+        (ds, rs), m = jax.lax.scan(update, (ds, rs), xs)
+        ds = agent.target_update(ds, hp.ddpg)
         ts = ts.replace(
-            ddpg=ds, buffer=buf, key=key,
+            ddpg=ds, buffer=buf, relabel=rs, key=key,
             env_steps=ts.env_steps + n_envs * T,
             updates=ts.updates + cfg.n_batches,
         )
         metrics = {k: v.mean() for k, v in m.items()}
         metrics["train_success"] = success.mean()
+        metrics["bias"] = bias(k_bias, ts, ds, hp)
         return ts, metrics
 
-    def evaluate(key, ds: DDPGState, hp: HParams, n: int = n_test):
+    def evaluate(key, ds: DDPGState, hp: Hyper, n: int = n_test):
         """Mean final-step success of ``n`` deterministic episodes."""
-        _, success = rollout(key, ds, hp, n, explore=False)
+        _, success = rollout(key, ds, hp.ddpg, n, explore=False)
         return success.mean()
 
-    def epoch(ts: TrainState, hp: HParams):
+    def epoch(ts: TrainState, hp: Hyper):
         ts, m = jax.lax.scan(lambda s, _: cycle(s, hp), ts, None, length=cfg.n_cycles)
         key, k_test = jax.random.split(ts.key)
         test = evaluate(k_test, ts.ddpg, hp)
         ts = ts.replace(key=key, epoch=ts.epoch + 1)
+        b = jax.tree.map(lambda x: x.sum(0), m["bias"])
+        mean = {}
+        for i, name in enumerate(SOURCE_NAMES):
+            n = b["n"][i]
+            mean[f"bias_{name}"] = jnp.where(n > 0, b["w"][i] / jnp.maximum(n, 1), jnp.nan)
+            mean[f"bias_unw_{name}"] = jnp.where(n > 0, b["u"][i] / jnp.maximum(n, 1), jnp.nan)
         return ts, EpochMetrics(
             test_success=test,
             train_success=m["train_success"].mean(),
@@ -154,7 +210,10 @@ def make_trainer(cfg, env) -> Trainer:
             q_mean=m["q_mean"].mean(),
             env_steps=ts.env_steps,
             updates=ts.updates,
+            frac_her=m["frac_her"].mean(),
+            frac_dher=m["frac_dher"].mean(),
+            **mean,
         )
 
     return Trainer(init=init, cycle=cycle, epoch=epoch, evaluate=evaluate,
-                   hparams=hparams_from_config(cfg), ddpg=agent)
+                   hparams=hparams_from_config(cfg), ddpg=agent, relabeller=relabeller)

@@ -2,6 +2,7 @@
 
 import dataclasses
 import datetime
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -45,7 +46,8 @@ def test_defaults() -> None:
     assert (cfg.backend, cfg.scene, cfg.hidden, cfg.layers) == ("auto", "auto", 256, 3)
     assert (cfg.actor_lr, cfg.critic_lr, cfg.polyak, cfg.action_l2) == (1e-3, 1e-3, 0.95, 1.0)
     assert (cfg.noise_eps, cfg.random_eps, cfg.replay_k) == (0.2, 0.3, 4)
-    assert (cfg.lambda_r, cfg.lambda_h) == (1.0, 1.0)
+    assert (cfg.lambda_r, cfg.lambda_h) == (None, None)
+    assert (resolve(cfg).lambda_r, resolve(cfg).lambda_h) == (1.0, 1.0)
     assert cfg.run_dir is None and cfg.resume is None
     assert (cfg.checkpoint_every, cfg.tensorboard, cfg.progress) == (1, False, True)
     with pytest.raises(dataclasses.FrozenInstanceError):
@@ -212,5 +214,33 @@ def test_resume_config(tmp_path: Path) -> None:
 
 
 def test_env_names_match_env_package() -> None:
-    scene = pytest.importorskip("rdher_jax.envs.scene")
-    assert set(scene.TASK_XML) == set(ENV_NAMES)
+    envs = pytest.importorskip("rdher_jax.envs")
+    assert set(envs.TASK_NAMES) == set(ENV_NAMES)
+
+
+@pytest.mark.parametrize(
+    "env, algo, want",
+    [("FetchReach", "rdher", (2.0, 1.0)), ("FetchPickAndPlace", "rdher", (2.0, 1.0)),
+     ("FetchPush", "rdher", (4.0, 0.5)), ("FetchSlide", "archer", (4.0, 0.5)),
+     ("FetchPushMoving", "rdher", (4.0, 0.5)), ("FetchPush", "dher", (1.0, 1.0)),
+     ("FetchSlide", "her", (1.0, 1.0))],
+)
+def test_reward_weights_default_per_algo_and_task(env, algo, want) -> None:
+    cfg = resolve(parse_args([f"env={env}", f"algo={algo}"]))
+    assert (cfg.lambda_r, cfg.lambda_h) == want
+    # An explicit weight wins over the paper's default, and only for that weight.
+    cfg = resolve(parse_args([f"env={env}", f"algo={algo}", "lambda_h=3"]))
+    assert (cfg.lambda_r, cfg.lambda_h) == (want[0], 3.0)
+
+
+@pytest.mark.parametrize(
+    "arg, msg",
+    [("dher_fraction=1.5", "dher_fraction must be in [0, 1]"),
+     ("dher_tol=0", "dher_tol must be > 0"),
+     ("cher_candidates=8", "cher_candidates (8) must be >= batch_size (256)"),
+     ("dher_records=100", "dher_records (100) must be >="),
+     ("cher_growth=0.5", "cher_growth must be >= 1")],
+)
+def test_relabel_options_are_checked(arg, msg) -> None:
+    with pytest.raises(ConfigError, match=re.escape(msg)):
+        parse_args([arg])

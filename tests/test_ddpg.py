@@ -9,7 +9,7 @@ import optax
 import pytest
 
 from rdher_jax.ddpg import DDPGState, HParams, critic_target, make_ddpg
-from rdher_jax.her import Transition
+from rdher_jax.relabel import Transition
 
 OBS, GOAL, ACT = 4, 3, 2
 MAX_U, CLIP_OBS, NORM_EPS, NORM_CLIP = 2.0, 6.0, 0.01, 5.0
@@ -44,7 +44,7 @@ def losses(state: DDPGState, batch: Transition, h: HParams) -> tuple[jax.Array, 
 
 
 def _batch(seed: int, n: int = B) -> Transition:
-    """Random batch with rewards in {-1, 0} and a mix of hindsight and real rows."""
+    """Random batch with rewards in {-1, 0} and rows of every source."""
     rng = np.random.default_rng(seed)
     f32 = lambda x: jnp.asarray(x, jnp.float32)
     return Transition(
@@ -54,7 +54,10 @@ def _batch(seed: int, n: int = B) -> Transition:
         reward=f32(-(rng.random(n) < 0.5).astype(np.float32)),
         next_obs=f32(rng.normal(1.0, 2.0, (n, OBS))),
         next_goal=f32(rng.normal(0.0, 2.0, (n, GOAL))),
-        hindsight=jnp.asarray(np.arange(n) % 3 == 0),
+        # Rows cycle through the three sources: real, HER-relabelled, DHER-combined.
+        source=jnp.asarray(np.arange(n) % 3, jnp.int32),
+        ep=jnp.zeros(n, jnp.int32), t=jnp.zeros(n, jnp.int32),
+        goal_ep=jnp.zeros(n, jnp.int32), goal_shift=jnp.zeros(n, jnp.int32),
     )
 
 

@@ -10,7 +10,7 @@ from hypothesis import Phase, given, settings
 from hypothesis import strategies as st
 
 from rdher_jax import buffer as rb
-from rdher_jax import her
+from rdher_jax.relabel import her
 
 
 def fetch_reward(achieved, desired):

@@ -157,7 +157,8 @@ def test_vmapped_hparams_equal_separate_runs(tmp_path):
     _, trainer = train_mod.build(cfg)
     hp = trainer.hparams
     hps = jax.tree.map(lambda x: jax.numpy.stack([x, x]), hp)
-    hps = hps.replace(critic_lr=jax.numpy.array([1e-3, 3e-3]), lambda_r=jax.numpy.array([1.0, 2.0]))
+    hps = hps.replace(ddpg=hps.ddpg.replace(critic_lr=jax.numpy.array([1e-3, 3e-3]),
+                                            lambda_r=jax.numpy.array([1.0, 2.0])))
     keys = jax.random.split(jax.random.PRNGKey(7), 2)
     vts = jax.jit(jax.vmap(trainer.init))(keys, hps)
     vts, vm = jax.jit(jax.vmap(trainer.epoch))(vts, hps)

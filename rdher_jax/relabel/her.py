@@ -17,9 +17,13 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from rdher_jax.buffer import BufferState, indices_from_bits
+from rdher_jax.buffer import BufferState, Episode, indices_from_bits
 
 RewardFn = Callable[[jax.Array, jax.Array], jax.Array]
+
+# Where a sampled row's goal came from (``Transition.source``).
+REAL, HER, DHER = 0, 1, 2
+SOURCE_NAMES = ("real", "her", "dher")
 
 
 @struct.dataclass
@@ -32,8 +36,18 @@ class Transition:
         action: ``a_t``.
         reward: ``(batch,)`` float32, recomputed with ``compute_reward``.
         next_obs: ``o_{t+1}``.
-        next_goal: goal at ``t+1`` (equal to ``goal`` for relabelled samples).
-        hindsight: ``(batch,)`` bool, True where the goal was relabelled.
+        next_goal: goal at ``t+1`` (equal to ``goal`` for HER-relabelled samples).
+        source: ``(batch,)`` int32, where the row came from: ``REAL`` (the stored goal),
+            ``HER`` ('future' relabelled) or ``DHER`` (combined with another episode's goals).
+        ep: ``(batch,)`` int32 episode slot of ``(o_t, a_t, o_{t+1})``.
+        t: ``(batch,)`` int32 step of that transition in its episode.
+        goal_ep: ``(batch,)`` int32 slot whose desired-goal trajectory the row follows (``ep``
+            for real rows, the goal-providing episode for DHER rows; unused for HER rows).
+        goal_shift: ``(batch,)`` int32: at step ``k`` of episode ``ep`` the row's goal is
+            ``g[goal_ep, k + goal_shift]`` (0 for real rows; unused for HER rows).
+
+    The last four fields let diagnostics follow a row's goal through its stored episode
+    (``rdher_jax.relabel.observed_return``); the learner reads only the first seven.
     """
 
     obs: jax.Array
@@ -42,7 +56,16 @@ class Transition:
     reward: jax.Array
     next_obs: jax.Array
     next_goal: jax.Array
-    hindsight: jax.Array
+    source: jax.Array
+    ep: jax.Array
+    t: jax.Array
+    goal_ep: jax.Array
+    goal_shift: jax.Array
+
+    @property
+    def hindsight(self) -> jax.Array:
+        """``(batch,)`` bool: the goal is not the stored one (HER or DHER row)."""
+        return self.source != REAL
 
 
 def relabel_prob_from_k(k: float) -> float:
@@ -107,7 +130,7 @@ def draw_her(
 
 
 def gather_her(
-    buffer: BufferState,
+    buffer: BufferState | Episode,
     ep_idx: jax.Array,
     t: jax.Array,
     future_t: jax.Array,
@@ -117,7 +140,7 @@ def gather_her(
     """Gather a HER batch for given draws.
 
     Args:
-        buffer: the replay buffer.
+        buffer: the replay buffer, or a batch of whole episodes (same field layout).
         ep_idx: int episode slots, ``(batch,)``.
         t: int steps in ``[0, T)``, ``(batch,)``.
         future_t: int steps in ``[t+1, T]``, ``(batch,)``.
@@ -141,7 +164,11 @@ def gather_her(
         reward=reward,
         next_obs=buffer.obs[ep_idx, t + 1],
         next_goal=next_goal,
-        hindsight=mask,
+        source=jnp.where(mask, HER, REAL).astype(jnp.int32),
+        ep=ep_idx,
+        t=t,
+        goal_ep=ep_idx,
+        goal_shift=jnp.zeros_like(t),
     )
 
 
@@ -166,3 +193,20 @@ def sample_her(
     """
     draws = draw_her(key, buffer.num_episodes, buffer.horizon, batch_size, relabel_prob)
     return gather_her(buffer, *draws, compute_reward)
+
+
+def sample_episodes(
+    key: jax.Array,
+    episodes: Episode,
+    batch_size: int,
+    relabel_prob: jax.Array | float,
+    compute_reward: RewardFn,
+) -> Transition:
+    """'future' relabelled transitions drawn from a batch of whole episodes (no buffer).
+
+    The trainer feeds the observation normaliser with these, from the episodes just collected,
+    as baselines does.
+    """
+    n = jnp.asarray(episodes.action.shape[0], jnp.int32)
+    draws = draw_her(key, n, episodes.action.shape[1], batch_size, relabel_prob)
+    return gather_her(episodes, *draws, compute_reward)

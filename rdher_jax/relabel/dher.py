@@ -1,0 +1,303 @@
+"""DHER: goal matching and trajectory combination across failed episodes (RDHER section 4.1).
+
+Algorithm 1 of the paper: among failed episodes, find ``E_i, E_j`` (``i != j``) with
+``ag[i, p] == g[j, q]``; with ``m = min(p, q)``, clone E_j's desired-goal trajectory
+``g^h_t = g[j, q - m + t]`` and relabel E_i's transitions ``p - m ... p - 1`` with it; the
+reward is recomputed with ``compute_reward``.
+
+Matching on device, over the whole buffer
+-----------------------------------------
+"Equal" means equal cells of a grid of ``dher_tol`` metres (the authors key positions as
+``"%.2f"`` strings, a 1 cm grid). Every stored point (slot, step) of a *failed* episode has an
+int32 cell key; two sorted indices, one of desired-goal keys and one of achieved-goal keys,
+cover the whole buffer (points of successful or unwritten episodes carry a sentinel key that
+sorts last). A cycle does not re-sort them: the points of the slots just overwritten are
+dropped and the new episodes' points merged in, in one pass linear in the buffer (``_merge``).
+
+New matches can only involve the new episodes, so each cycle looks up (binary search)
+
+- every achieved point of a new failed episode among all desired points, and
+- every distinct desired point of a new failed episode among all achieved points (up to
+  ``partners`` achieved points each),
+
+and appends the achieved side ``(i, p)`` of each match to a ring of ``records``, as the authors
+record matches when episodes are stored. Sampling draws a record, looks its cell up again in the
+current index, picks one matching desired point ``(j, q)`` uniformly, and builds the combined
+transition; a record whose episode was overwritten since, or whose match is gone, falls back to
+a plain sample. Nothing is ever a host hash table, and nothing is quadratic in the buffer.
+
+Mixing
+------
+As in the authors' code, ``dher_fraction * (1 - s)`` of a batch are combined transitions, with
+``s`` the success rate of the last 100 stored episodes. Unlike their code, the rest are sampled
+with 'future' relabelling at ``relabel_prob`` (set ``replay_k=0`` for their plain samples): on
+the static-goal Fetch tasks exact matches are rare, and without 'future' goals DHER would train
+almost only on real rewards there (see the README, "Mixing").
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from rdher_jax.buffer import BufferState
+from rdher_jax.relabel import her
+from rdher_jax.relabel.her import DHER, RewardFn, Transition
+
+SENTINEL = jnp.iinfo(jnp.int32).max
+RECENT = 100  # episodes behind the success rate that sets the combined fraction
+
+
+@struct.dataclass
+class DHERState:
+    """Match indices over the whole buffer.
+
+    Attributes:
+        g_keys, g_idx: ``(P,)`` sorted cell keys of desired goals and their points
+            (``slot * (T+1) + step``), ``P = capacity_episodes * (T+1)``.
+        ag_keys, ag_idx: the same for achieved goals.
+        slot_gen: ``(capacity_episodes,)`` int32, how often each slot was written.
+        rec_ep, rec_t, rec_gen: ``(records,)`` int32 ring of matched achieved points and the
+            generation of their slot when recorded.
+        rec_pos: int32 next record to write. rec_count: int32 records stored.
+        success_rate: float32 success of the last 100 stored episodes.
+    """
+
+    g_keys: jax.Array
+    g_idx: jax.Array
+    ag_keys: jax.Array
+    ag_idx: jax.Array
+    slot_gen: jax.Array
+    rec_ep: jax.Array
+    rec_t: jax.Array
+    rec_gen: jax.Array
+    rec_pos: jax.Array
+    rec_count: jax.Array
+    success_rate: jax.Array
+
+
+def cells(x: jax.Array, tol: jax.Array) -> jax.Array:
+    """Grid cell of each point: ``round(x / tol)`` as int32, ``(..., d)``."""
+    return jnp.round(x / tol).astype(jnp.int32)
+
+
+def cell_keys(x: jax.Array, tol: jax.Array) -> jax.Array:
+    """One int32 key per point, packing ``30 // d`` low bits of each cell coordinate.
+
+    Keys of different cells can collide only when the cells are ``2**(30 // d)`` cells apart
+    (10 m at 1 cm for 3-D goals); matches are re-checked on the cells themselves.
+    """
+    c = cells(x, tol)
+    d = c.shape[-1]
+    bits = 30 // d
+    mask = (1 << bits) - 1
+    key = jnp.zeros(c.shape[:-1], jnp.int32)
+    for k in range(d):
+        key = (key << bits) | (c[..., k] & mask)
+    return key
+
+
+def merge(keys: jax.Array, idx: jax.Array, drop: jax.Array, new_keys: jax.Array,
+          new_idx: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Sorted ``(keys, idx)`` without the ``drop``-ped entries and with the new ones merged in.
+
+    ``drop`` must mark exactly ``len(new_keys)`` entries, so the size stays fixed. Linear in the
+    size (one cumsum, one scatter) plus a binary search per entry into the few new keys.
+    """
+    P, n = keys.shape[0], new_keys.shape[0]
+    new_keys, new_idx = jax.lax.sort((new_keys, new_idx), num_keys=1)
+    kept_rank = jnp.cumsum(~drop, dtype=jnp.int32) - 1
+    # New entries go after kept entries with equal keys: old ones shift by the new keys <= them.
+    n_new_le = jnp.searchsorted(new_keys, keys, side="left", method="scan_unrolled")
+    pos_old = jnp.where(drop, P, kept_rank + n_new_le.astype(jnp.int32))
+    lo = jnp.searchsorted(keys, new_keys, side="right", method="scan").astype(jnp.int32)
+    dropped_before = jnp.concatenate([jnp.zeros(1, jnp.int32),
+                                      jnp.cumsum(drop, dtype=jnp.int32)])[lo]
+    pos_new = lo - dropped_before + jnp.arange(n, dtype=jnp.int32)
+    # Every kept entry and every new one lands on a distinct position of [0, P); dropped ones
+    # all go to P and are discarded.
+    out_k = keys.at[pos_old].set(keys, mode="drop").at[pos_new].set(new_keys)
+    out_i = idx.at[pos_old].set(idx, mode="drop").at[pos_new].set(new_idx)
+    return out_k, out_i
+
+
+class DHERFns(NamedTuple):
+    """DHER's functions: the ``Relabeller`` three, and the draws / gather split of combined
+    rows so a reference can be fed the same draws."""
+
+    init: Callable
+    update: Callable
+    sample: Callable
+    draw_combined: Callable
+    gather_combined: Callable
+
+
+def make_dher(*args, **kwargs):
+    """DHER as a ``Relabeller`` (arguments as :func:`build_dher`)."""
+    from rdher_jax.relabel import Relabeller
+
+    f = build_dher(*args, **kwargs)
+    return Relabeller("dher", init=f.init, update=f.update, sample=f.sample)
+
+
+def build_dher(compute_reward: RewardFn, batch_size: int, capacity_episodes: int, T: int,
+               goal_dim: int, num_new: int, records: int = 65536, partners: int = 8) -> DHERFns:
+    """DHER relabelling for a buffer of ``capacity_episodes`` slots of horizon ``T``.
+
+    Args:
+        compute_reward: the env's ``(achieved, desired) -> reward``.
+        batch_size: rows per sample.
+        capacity_episodes: buffer slots.
+        T: horizon.
+        goal_dim: goal size.
+        num_new: episodes added per cycle (``num_envs``).
+        records: size of the ring of recorded matches.
+        partners: achieved points recorded per new desired point.
+
+    Returns:
+        :class:`DHERFns`.
+    """
+    del goal_dim  # shapes come from the buffer; kept for a uniform factory signature
+    cap, W = capacity_episodes, T + 1
+    P = cap * W
+    n_rec_new = num_new * W * (1 + partners)
+    if records < n_rec_new:
+        raise ValueError(f"dher_records ({records}) must be >= {n_rec_new}, the records one "
+                         "cycle can add")
+
+    def init() -> DHERState:
+        z = jnp.zeros((records,), jnp.int32)
+        full = jnp.full((P,), SENTINEL, jnp.int32)
+        return DHERState(
+            g_keys=full, g_idx=jnp.arange(P, dtype=jnp.int32),
+            ag_keys=full, ag_idx=jnp.arange(P, dtype=jnp.int32),
+            slot_gen=jnp.zeros((cap,), jnp.int32),
+            rec_ep=z, rec_t=z, rec_gen=z,
+            rec_pos=jnp.zeros((), jnp.int32), rec_count=jnp.zeros((), jnp.int32),
+            success_rate=jnp.zeros((), jnp.float32),
+        )
+
+    def failed_of(ag_last: jax.Array, g_last: jax.Array) -> jax.Array:
+        return compute_reward(ag_last, g_last) < 0
+
+    def update(state: DHERState, buffer: BufferState, params) -> DHERState:
+        tol = params.dher_tol
+        first = (buffer.insert_pos - num_new) % cap
+        slots = (first + jnp.arange(num_new, dtype=jnp.int32)) % cap
+        gen = state.slot_gen.at[slots].add(1)
+        ag, g = buffer.ag[slots], buffer.g[slots]  # (n, W, d)
+        failed = failed_of(ag[:, T], g[:, T])  # (n,)
+        pts = (slots[:, None] * W + jnp.arange(W, dtype=jnp.int32)).reshape(-1)
+        ka = jnp.where(failed[:, None], cell_keys(ag, tol), SENTINEL)  # (n, W)
+        kg = jnp.where(failed[:, None], cell_keys(g, tol), SENTINEL)
+
+        def drop(idx):
+            return (idx // W - first) % cap < num_new
+
+        g_keys, g_idx = merge(state.g_keys, state.g_idx, drop(state.g_idx), kg.reshape(-1), pts)
+        ag_keys, ag_idx = merge(state.ag_keys, state.ag_idx, drop(state.ag_idx),
+                                ka.reshape(-1), pts)
+
+        # (a) new achieved points among all desired points, minus the episode's own goals.
+        qa = ka.reshape(-1)
+        cnt = (jnp.searchsorted(g_keys, qa, side="right", method="scan")
+               - jnp.searchsorted(g_keys, qa, side="left", method="scan"))
+        own = jnp.sum(ka[:, :, None] == kg[:, None, :], axis=-1).reshape(-1)
+        step = jnp.tile(jnp.arange(W, dtype=jnp.int32), num_new)
+        ep_a = jnp.repeat(slots, W)
+        ok_a = (qa != SENTINEL) & (cnt - own > 0) & (step >= 1)
+
+        # (b) distinct new desired points among all achieved points: up to `partners` older
+        # achieved points each (matches with the new episodes themselves are (a)'s).
+        fresh = jnp.concatenate([jnp.ones((num_new, 1), bool), kg[:, 1:] != kg[:, :-1]], 1)
+        qg = jnp.where(fresh, kg, SENTINEL).reshape(-1)
+        lo = jnp.searchsorted(ag_keys, qg, side="left", method="scan").astype(jnp.int32)
+        hi = jnp.searchsorted(ag_keys, qg, side="right", method="scan").astype(jnp.int32)
+        pos = lo[:, None] + jnp.arange(partners, dtype=jnp.int32)[None, :]
+        pt = ag_idx[jnp.minimum(pos, P - 1)]
+        ep_b, t_b = pt // W, pt % W
+        is_new = (ep_b - first) % cap < num_new
+        ok_b = (qg != SENTINEL)[:, None] & (pos < hi[:, None]) & ~is_new & (t_b >= 1)
+
+        rec_ep = jnp.concatenate([ep_a, ep_b.reshape(-1)])
+        rec_t = jnp.concatenate([step, t_b.reshape(-1)])
+        ok = jnp.concatenate([ok_a, ok_b.reshape(-1)])
+        rank = jnp.cumsum(ok, dtype=jnp.int32) - 1
+        n_ok = jnp.sum(ok, dtype=jnp.int32)
+        where = jnp.where(ok, (state.rec_pos + rank) % records, records)
+
+        def put(ring, x):
+            return ring.at[where].set(x, mode="drop")
+
+        # Success rate of the last RECENT stored episodes (the newest slots).
+        n_ep = buffer.num_episodes
+        recent = (buffer.insert_pos - 1 - jnp.arange(RECENT, dtype=jnp.int32)) % cap
+        live = jnp.arange(RECENT) < n_ep
+        succ = ~failed_of(buffer.ag[recent, T], buffer.g[recent, T])
+        rate = jnp.sum(succ & live) / jnp.maximum(jnp.minimum(n_ep, RECENT), 1)
+
+        return DHERState(
+            g_keys=g_keys, g_idx=g_idx, ag_keys=ag_keys, ag_idx=ag_idx, slot_gen=gen,
+            rec_ep=put(state.rec_ep, rec_ep), rec_t=put(state.rec_t, rec_t),
+            rec_gen=put(state.rec_gen, gen[rec_ep]),
+            rec_pos=(state.rec_pos + n_ok) % records,
+            rec_count=jnp.minimum(state.rec_count + n_ok, records),
+            success_rate=rate.astype(jnp.float32),
+        )
+
+    def draw_combined(key: jax.Array, n: int) -> jax.Array:
+        """Every random draw of ``n`` combined rows: ``(4, n)`` uint32 bits."""
+        return jax.random.bits(key, (4, n), jnp.uint32)
+
+    def gather_combined(bits, state: DHERState, buffer: BufferState, params
+                        ) -> tuple[Transition, jax.Array]:
+        """Combined transitions for given draws, and which rows are valid."""
+        tol = params.dher_tol
+        n_rec = jnp.maximum(state.rec_count, 1).astype(jnp.uint32)
+        r = (bits[0] % n_rec).astype(jnp.int32)
+        i, p = state.rec_ep[r], state.rec_t[r]
+        ok = (state.rec_count > 0) & (state.rec_gen[r] == state.slot_gen[i])
+        ka = cell_keys(buffer.ag[i, p], tol)
+        lo = jnp.searchsorted(state.g_keys, ka, side="left", method="scan").astype(jnp.int32)
+        hi = jnp.searchsorted(state.g_keys, ka, side="right", method="scan").astype(jnp.int32)
+        cnt = hi - lo
+        pick = lo + (bits[1] % jnp.maximum(cnt, 1).astype(jnp.uint32)).astype(jnp.int32)
+        pt = state.g_idx[jnp.minimum(pick, state.g_idx.shape[0] - 1)]
+        j, q = pt // W, pt % W
+        same = jnp.all(cells(buffer.ag[i, p], tol) == cells(buffer.g[j, q], tol), axis=-1)
+        m = jnp.minimum(p, q)
+        ok = ok & (cnt > 0) & (ka != SENTINEL) & (j != i) & same & (m >= 1)
+        # Offset t in [0, m): E_i's step p - m + t with E_j's goals at q - m + t and one later.
+        t = (bits[2] % jnp.maximum(m, 1).astype(jnp.uint32)).astype(jnp.int32)
+        s, gq = p - m + t, q - m + t
+        next_goal = buffer.g[j, gq + 1]
+        tr = Transition(
+            obs=buffer.obs[i, s],
+            goal=buffer.g[j, gq],
+            action=buffer.action[i, s],
+            reward=compute_reward(buffer.ag[i, s + 1], next_goal).astype(jnp.float32),
+            next_obs=buffer.obs[i, s + 1],
+            next_goal=next_goal,
+            source=jnp.full_like(i, DHER),
+            ep=i, t=s, goal_ep=j, goal_shift=q - p,
+        )
+        return tr, ok
+
+    def sample(key, state: DHERState, buffer: BufferState, params, step):
+        del step
+        k_plain, k_comb, k_mix = jax.random.split(key, 3)
+        plain = her.sample_her(k_plain, buffer, batch_size, params.relabel_prob, compute_reward)
+        comb, ok = gather_combined(draw_combined(k_comb, batch_size), state, buffer, params)
+        frac = params.dher_fraction * (1.0 - state.success_rate)
+        use = ok & (jax.random.uniform(k_mix, (batch_size,)) < frac)
+
+        def mix(a, b):
+            return jnp.where(use.reshape(use.shape + (1,) * (a.ndim - 1)), a, b)
+
+        return state, jax.tree.map(mix, comb, plain)
+
+    return DHERFns(init, update, sample, draw_combined, gather_combined)
