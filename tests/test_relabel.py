@@ -1,0 +1,343 @@
+"""Relabelling strategies against plain numpy references: DHER's matcher and combination, CHER's
+selection, the observed-return diagnostic, and the per-row reward weights."""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from rdher_jax import buffer as rb
+from rdher_jax import relabel
+from rdher_jax.ddpg import HParams, critic_target
+from rdher_jax.relabel import cher, dher
+from rdher_jax.relabel.her import DHER, HER, REAL
+
+OBS, ACT, D = 2, 2, 3
+TOL = 1.0  # goals live on an integer grid: a cell is a point
+
+
+def reward_fn(achieved, desired):
+    return -(jnp.linalg.norm(achieved - desired, axis=-1) > 0.5).astype(jnp.float32)
+
+
+def reward_np(achieved, desired):
+    return -(np.linalg.norm(achieved - desired, axis=-1) > 0.5).astype(np.float32)
+
+
+PARAMS = relabel.RelabelParams.default(relabel_prob=0.0, dher_fraction=1.0, dher_tol=TOL)
+
+
+@functools.cache
+def dher_fns(cap, T, num_new, partners, batch=64, records=4096):
+    f = dher.build_dher(reward_fn, batch, cap, T, D, num_new=num_new, records=records,
+                        partners=partners)
+    return f, jax.jit(f.update), jax.jit(f.gather_combined), jax.jit(rb.add)
+
+
+def random_episodes(rng, n, T, span):
+    """Episodes with goals on a small integer grid, so that cross-episode matches are common."""
+    return rb.Episode(
+        obs=rng.standard_normal((n, T + 1, OBS)).astype(np.float32),
+        ag=rng.integers(0, span, (n, T + 1, D)).astype(np.float32),
+        g=rng.integers(0, span, (n, T + 1, D)).astype(np.float32),
+        action=rng.standard_normal((n, T, ACT)).astype(np.float32),
+    )
+
+
+def failed_slots(buf):
+    n = int(buf.num_episodes)
+    T = buf.horizon
+    ag, g = np.asarray(buf.ag), np.asarray(buf.g)
+    fail = reward_np(ag[:, T], g[:, T]) < 0
+    fail[n:] = False
+    return fail
+
+
+def brute_matches(buf):
+    """Every (i, p, j, q) with i != j failed, p >= 1, and equal cells, by plain loops."""
+    fail = failed_slots(buf)
+    ag, g = np.round(np.asarray(buf.ag) / TOL), np.round(np.asarray(buf.g) / TOL)
+    W = buf.horizon + 1
+    out = set()
+    for i in np.flatnonzero(fail):
+        for p in range(1, W):
+            for j in np.flatnonzero(fail):
+                if j == i:
+                    continue
+                for q in range(W):
+                    if np.array_equal(ag[i, p], g[j, q]):
+                        out.add((int(i), p, int(j), q))
+    return out
+
+
+def check_index(keys, idx, buf, field):
+    """The sorted index holds exactly the failed episodes' points, each once."""
+    keys, idx = np.asarray(keys), np.asarray(idx)
+    assert np.all(np.diff(keys.astype(np.int64)) >= 0)
+    np.testing.assert_array_equal(np.sort(idx), np.arange(idx.size))
+    W = buf.horizon + 1
+    fail = failed_slots(buf)
+    want_keys = np.asarray(dher.cell_keys(jnp.asarray(getattr(buf, field)), TOL)).reshape(-1)
+    live = np.repeat(fail, W)
+    expect = np.where(live, want_keys, dher.SENTINEL)
+    np.testing.assert_array_equal(keys, expect[idx])
+
+
+@settings(max_examples=12, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n_adds=st.integers(1, 9), span=st.integers(2, 4))
+def test_dher_index_and_records_match_brute_force(seed, n_adds, span):
+    """After every cycle (ring wraparound included, since cap=5 slots receive up to 18
+    episodes), the index covers exactly the failed episodes and every current match of an
+    achieved point is recorded."""
+    rng = np.random.default_rng(seed)
+    cap, T, n_new = 5, 4, 2
+    f, update, _, add = dher_fns(cap, T, n_new, partners=64)
+    buf = rb.init(cap * T, T, OBS, D, ACT)
+    state = f.init()
+    for _ in range(n_adds):
+        buf = add(buf, random_episodes(rng, n_new, T, span))
+        state = update(state, buf, PARAMS)
+        check_index(state.g_keys, state.g_idx, buf, "g")
+        check_index(state.ag_keys, state.ag_idx, buf, "ag")
+    matches = brute_matches(buf)
+    gen = np.asarray(state.slot_gen)
+    n = int(state.rec_count)
+    rec = {
+        (int(i), int(p))
+        for i, p, g_ in zip(np.asarray(state.rec_ep)[:n], np.asarray(state.rec_t)[:n],
+                            np.asarray(state.rec_gen)[:n], strict=True)
+        if g_ == gen[i]
+    }
+    assert {(i, p) for i, p, _, _ in matches} <= rec
+    # The recent success rate is that of the stored episodes (all of them: fewer than 100).
+    fail = failed_slots(buf)[: int(buf.num_episodes)]
+    assert float(state.success_rate) == pytest.approx(1.0 - fail.mean())
+
+
+@settings(max_examples=8, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n_adds=st.integers(2, 8))
+def test_dher_combined_rows_are_algorithm_1(seed, n_adds):
+    """Each valid combined row is a genuine current match, built exactly as Algorithm 1
+    defines it, and the draws reach every match of the buffer."""
+    rng = np.random.default_rng(seed)
+    cap, T, n_new, batch = 5, 4, 2, 4096
+    f, update, _, add = dher_fns(cap, T, n_new, partners=64)
+    gather = jax.jit(f.gather_combined)
+    buf = rb.init(cap * T, T, OBS, D, ACT)
+    state = f.init()
+    for _ in range(n_adds):
+        buf = add(buf, random_episodes(rng, n_new, T, 2))
+        state = update(state, buf, PARAMS)
+    bits = f.draw_combined(jax.random.PRNGKey(seed % 1000), batch)
+    tr, ok = gather(bits, state, buf, PARAMS)
+    ok = np.asarray(ok)
+    matches = brute_matches(buf)
+    obs, ag, g, act = (np.asarray(x) for x in (buf.obs, buf.ag, buf.g, buf.action))
+    i, s, j = (np.asarray(x) for x in (tr.ep, tr.t, tr.goal_ep))
+    shift = np.asarray(tr.goal_shift)
+    seen = set()
+    for r in np.flatnonzero(ok):
+        # Recover (p, q, m, t) from the row and check it against the definition.
+        p_q = [(p, q) for (ii, p, jj, q) in matches
+               if ii == i[r] and jj == j[r] and q - p == shift[r] and p - min(p, q) <= s[r] < p]
+        assert p_q, f"row {r} is not a current match"
+        seen.update((i[r], p, j[r], q) for p, q in p_q)
+        p, q = p_q[0]  # any of them gives the same row: its goals are g[j, s + q - p]
+        m, t = min(p, q), s[r] - (p - min(p, q))
+        np.testing.assert_array_equal(tr.obs[r], obs[i[r], p - m + t])
+        np.testing.assert_array_equal(tr.action[r], act[i[r], p - m + t])
+        np.testing.assert_array_equal(tr.next_obs[r], obs[i[r], p - m + t + 1])
+        np.testing.assert_array_equal(tr.goal[r], g[j[r], q - m + t])
+        np.testing.assert_array_equal(tr.next_goal[r], g[j[r], q - m + t + 1])
+        assert tr.reward[r] == reward_np(ag[i[r], p - m + t + 1], g[j[r], q - m + t + 1])
+        assert tr.source[r] == DHER
+    # A match at q = 0 has m = 0: nothing to relabel. With 4096 draws over a handful of
+    # records, every point with a usable match is drawn.
+    usable = {(a, b) for a, b, _, q in matches if q >= 1}
+    if usable:
+        assert ok.any()
+        assert usable == {(int(a), int(b)) for a, b, _, _ in seen}
+
+
+def hand_made_buffer():
+    """Three episodes, T = 6, on a grid. E0 fails and its achieved goal at p = 3 equals E1's
+    (moving) desired goal at q = 5; E1 fails; E2 succeeds and also has that goal."""
+    T, W = 6, 7
+    far = np.array([50.0, 50.0, 50.0])
+    ag = np.zeros((3, W, D), np.float32)
+    g = np.zeros((3, W, D), np.float32)
+    ag[0] = np.arange(W)[:, None] * np.array([1.0, 0.0, 0.0]) + 10.0  # (10..16, 10, 10)
+    g[0] = far
+    ag[1] = far + 7.0
+    g[1] = np.arange(W)[:, None] * np.array([0.0, 1.0, 0.0]) + np.array([13.0, 5.0, 10.0])
+    g[1, 5] = ag[0, 3]  # the one cross-episode match (E1's goal moves; a jump at q = 5)
+    ag[2] = ag[0, 3]
+    g[2] = ag[0, 3]  # E2 succeeds: never a partner
+    obs = np.arange(3 * W * OBS, dtype=np.float32).reshape(3, W, OBS)
+    act = -np.arange(3 * T * ACT, dtype=np.float32).reshape(3, T, ACT)
+    return rb.Episode(obs=obs, ag=ag, g=g, action=act)
+
+
+def test_dher_hand_made_episodes():
+    ep = hand_made_buffer()
+    T = 6
+    f = dher.build_dher(reward_fn, 64, 4, T, D, num_new=3, records=4096, partners=8)
+    buf = rb.add(rb.init(4 * T, T, OBS, D, ACT), ep)
+    state = jax.jit(f.update)(f.init(), buf, PARAMS)
+    recs = {(int(a), int(b)) for a, b in
+            zip(np.asarray(state.rec_ep)[: int(state.rec_count)],
+                np.asarray(state.rec_t)[: int(state.rec_count)], strict=True)}
+    assert recs == {(0, 3)}
+    assert float(state.success_rate) == pytest.approx(1 / 3)
+    tr, ok = jax.jit(f.gather_combined)(f.draw_combined(jax.random.PRNGKey(0), 512), state,
+                                        buf, PARAMS)
+    ok = np.asarray(ok)
+    assert ok.all()
+    # p = 3, q = 5, m = 3: E0's steps 0, 1, 2 with E1's goals 2..3, 3..4, 4..5.
+    assert set(np.asarray(tr.t).tolist()) == {0, 1, 2}
+    for r in range(512):
+        t = int(tr.t[r])
+        np.testing.assert_array_equal(tr.goal[r], ep.g[1, 2 + t])
+        np.testing.assert_array_equal(tr.next_goal[r], ep.g[1, 3 + t])
+        np.testing.assert_array_equal(tr.obs[r], ep.obs[0, t])
+        np.testing.assert_array_equal(tr.next_obs[r], ep.obs[0, t + 1])
+        np.testing.assert_array_equal(tr.action[r], ep.action[0, t])
+    # Only the last combined step reaches the cloned goal.
+    np.testing.assert_array_equal(np.asarray(tr.reward), np.where(np.asarray(tr.t) == 2, 0, -1))
+
+
+def test_dher_sample_mixes_by_recent_success():
+    """With matches everywhere, the combined share is dher_fraction * (1 - success rate)."""
+    ep = hand_made_buffer()
+    T, n = 6, 20_000
+    f = dher.build_dher(reward_fn, n, 4, T, D, num_new=3, records=4096, partners=8)
+    buf = rb.add(rb.init(4 * T, T, OBS, D, ACT), ep)
+    state = f.update(f.init(), buf, PARAMS)
+    for frac in (0.0, 0.5, 0.8):
+        params = PARAMS.replace(dher_fraction=jnp.float32(frac), relabel_prob=jnp.float32(0.8))
+        _, tr = jax.jit(f.sample)(jax.random.PRNGKey(1), state, buf, params, jnp.int32(0))
+        src = np.asarray(tr.source)
+        want = frac * (1 - 1 / 3)
+        assert abs((src == DHER).mean() - want) < 5 * np.sqrt(want * (1 - want) / n) + 1e-9
+        # The rest are HER-sampled: relabelled with probability 0.8.
+        rest = src[src != DHER]
+        assert abs((rest == HER).mean() - 0.8) < 0.02
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), P=st.integers(1, 60), n=st.integers(1, 12))
+def test_merge_equals_sort(seed, P, n):
+    rng = np.random.default_rng(seed)
+    n = min(n, P)
+    keys = np.sort(rng.integers(0, 8, P)).astype(np.int32)
+    idx = rng.permutation(P).astype(np.int32)
+    drop = np.zeros(P, bool)
+    drop[rng.choice(P, n, replace=False)] = True
+    new_keys = rng.integers(0, 8, n).astype(np.int32)
+    new_idx = (1000 + np.arange(n)).astype(np.int32)
+    k, i = dher.merge(jnp.asarray(keys), jnp.asarray(idx), jnp.asarray(drop),
+                      jnp.asarray(new_keys), jnp.asarray(new_idx))
+    want = sorted(list(zip(keys[~drop], idx[~drop], strict=True))
+                  + list(zip(new_keys, new_idx, strict=True)))
+    k, i = np.asarray(k), np.asarray(i)
+    np.testing.assert_array_equal(k, [a for a, _ in want])
+    got = sorted(zip(k.tolist(), i.tolist(), strict=True))
+    assert got == sorted((int(a), int(b)) for a, b in want)
+
+
+def cher_select_np(goals, prox, lam, noise, sample):
+    """CHER's stochastic greedy, by plain loops (the reference)."""
+    C = len(goals)
+    d = np.sqrt(((goals[:, None] - goals[None]) ** 2).sum(-1))
+    mean_d = d.sum() / (C * (C - 1))
+    sim = np.exp(-(d**2) / mean_d**2)
+    cover = np.zeros(C)
+    chosen = []
+    for u in noise:
+        rest = [c for c in np.argsort(-u, kind="stable") if c not in chosen][:sample]
+        gains = [np.maximum(sim[:, c] - cover, 0).sum() - lam * prox[c] for c in rest]
+        best = rest[int(np.argmax(gains))]
+        chosen.append(best)
+        cover = np.maximum(cover, sim[:, best])
+    return np.array(chosen)
+
+
+@pytest.mark.parametrize("seed, lam", [(0, 1.0), (1, 30.0), (2, 0.0)])
+def test_cher_selection_matches_numpy(seed, lam):
+    rng = np.random.default_rng(seed)
+    C, K = 24, 10
+    goals = rng.normal(0, 0.1, (C, D)).astype(np.float32)
+    prox = rng.uniform(0, 0.3, C).astype(np.float32)
+    noise = rng.random((K, C)).astype(np.float32)
+    got = np.asarray(jax.jit(cher.select, static_argnums=4)(goals, prox, jnp.float32(lam),
+                                                            noise, 3))
+    want = cher_select_np(goals.astype(np.float64), prox, lam, noise, 3)
+    np.testing.assert_array_equal(got, want)
+    assert len(set(got.tolist())) == K  # no candidate twice
+
+
+def test_cher_sample_fields_come_from_candidates():
+    rng = np.random.default_rng(3)
+    T, cap = 5, 6
+    buf = rb.add(rb.init(cap * T, T, OBS, D, ACT),
+                 random_episodes(rng, cap, T, 3))
+    f = cher.build_cher(reward_fn, 16, 32, 3)
+    params = PARAMS.replace(relabel_prob=jnp.float32(0.8))
+    _, tr = jax.jit(f.sample)(jax.random.PRNGKey(4), (), buf, params, jnp.int32(7))
+    draws, noise = f.draw(jax.random.PRNGKey(4), buf, params.relabel_prob)
+    cand = relabel.her.gather_her(buf, *draws, reward_fn)
+    prox = np.linalg.norm(np.asarray(cand.goal) - np.asarray(buf.ag)[cand.ep, cand.t], axis=-1)
+    idx = cher_select_np(np.asarray(cand.goal, np.float64), prox, 1.0001**7, np.asarray(noise), 3)
+    for a, b in zip(jax.tree.leaves(tr), jax.tree.leaves(cand), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b)[idx])
+
+
+def test_observed_return_matches_loop():
+    rng = np.random.default_rng(5)
+    T, cap, gamma = 6, 3, 0.9
+    ep = random_episodes(rng, cap, T, 2)
+    buf = rb.add(rb.init(cap * T, T, OBS, D, ACT), ep)
+    B = 9
+    src = np.arange(B) % 3
+    ep_idx = rng.integers(0, cap, B)
+    real = src == REAL  # real rows follow their own stored goals (goal_ep = ep, no shift)
+    tr = relabel.Transition(
+        obs=jnp.zeros((B, OBS)), goal=jnp.asarray(rng.integers(0, 2, (B, D)), jnp.float32),
+        action=jnp.zeros((B, ACT)), reward=jnp.zeros(B), next_obs=jnp.zeros((B, OBS)),
+        next_goal=jnp.zeros((B, D)),
+        source=jnp.asarray(src, jnp.int32),
+        ep=jnp.asarray(ep_idx, jnp.int32),
+        t=jnp.asarray(rng.integers(0, T, B), jnp.int32),
+        goal_ep=jnp.asarray(np.where(real, ep_idx, rng.integers(0, cap, B)), jnp.int32),
+        goal_shift=jnp.asarray(np.where(real, 0, rng.integers(-3, 4, B)), jnp.int32),
+    )
+    got = np.asarray(relabel.observed_return(buf, tr, reward_fn, jnp.float32(gamma)))
+    for r in range(B):
+        e, t, src = int(tr.ep[r]), int(tr.t[r]), int(tr.source[r])
+        total = 0.0
+        for k in range(t, T):
+            if src == HER:
+                goal = np.asarray(tr.goal[r])
+            elif src == REAL:
+                goal = ep.g[e, k + 1]
+            else:
+                goal = ep.g[int(tr.goal_ep[r]), min(max(k + 1 + int(tr.goal_shift[r]), 0), T)]
+            total += gamma ** (k - t) * reward_np(ep.ag[e, k + 1], goal)
+        assert got[r] == pytest.approx(total, abs=1e-5)
+
+
+def test_reward_weights_apply_to_exactly_their_rows():
+    """lambda_r on real rows; lambda_h on HER-relabelled and DHER-combined rows."""
+    source = jnp.asarray([REAL, HER, DHER, REAL, DHER, HER], jnp.int32)
+    tr = relabel.Transition(*(jnp.zeros(6) for _ in range(6)), source=source,
+                            ep=source, t=source, goal_ep=source, goal_shift=source)
+    h = HParams.default(lambda_r=3.0, lambda_h=0.25, gamma=0.5)
+    y = np.asarray(critic_target(-jnp.ones(6), -jnp.ones(6), tr.hindsight, h))
+    lam = np.where(np.asarray(source) == REAL, 3.0, 0.25)
+    np.testing.assert_allclose(y, np.maximum(-lam - 0.5, -lam / 0.5))
