@@ -1,15 +1,21 @@
-"""The gymnasium-robotics Fetch tasks on device (installed as ``rdher_jax.envs``).
+"""The gymnasium-robotics Fetch tasks on device (installed as ``rdher_jax.envs``), and DHER's
+moving-goal variants of two of them.
 
-``make_env(name, backend=None)`` builds one; see ``fetch.FetchEnv`` for the API.
+``make_env(name, backend=None)`` builds one; see ``fetch.FetchEnv`` for the API and the
+``fetch`` module docstring for the moving tasks.
 """
 
 from __future__ import annotations
 
+import dataclasses
+
 from .fetch import EPISODE_LENGTH, FetchEnv, State
-from .physics import TASKS, Setup, check_task
+from .physics import MOVING_TASKS, TASKS, Setup, check_task
 
 BACKENDS = ("mujoco", "mjx")
-TASK_NAMES = tuple(TASKS)
+GYMNASIUM_TASK_NAMES = tuple(TASKS)  # as gymnasium-robotics' Fetch*-v4 (conformance-tested)
+MOVING_TASK_NAMES = tuple(MOVING_TASKS)  # DHER's Dy-Reaching and Dy-Pushing
+TASK_NAMES = GYMNASIUM_TASK_NAMES + MOVING_TASK_NAMES
 
 # XLA:CPU flags under which MJX is usable on a CPU (see README, "MJX on CPU").
 CPU_XLA_FLAGS = (
@@ -25,28 +31,37 @@ def default_backend() -> str:
 
 
 def make_env(name: str, backend: str | None = None, scene: str | None = None,
-             auto_reset: bool = True, num_threads: int | None = None) -> FetchEnv:
+             auto_reset: bool = True, num_threads: int | None = None,
+             goal_speed: float | None = None) -> FetchEnv:
     """Build a Fetch task.
 
     Args:
-      name: FetchReach, FetchPush, FetchSlide or FetchPickAndPlace (a ``-v4`` suffix is accepted).
+      name: FetchReach, FetchPush, FetchSlide or FetchPickAndPlace (a ``-v4`` suffix is
+        accepted), or a moving-goal task, FetchReachMoving or FetchPushMoving.
       backend: ``"mujoco"`` (native MuJoCo via mjbatch), ``"mjx"``, or None for the default.
       scene: ``"original"`` (the unedited gymnasium-robotics scene; native only) or ``"mjx"``
         (the MJX-edited scene). None: original for ``mujoco``, mjx for ``mjx``.
       auto_reset: replace a state whose episode ended by a fresh episode inside ``step``.
       num_threads: host threads for the native backend (default: all usable cores).
+      goal_speed: moving tasks only: metres per step the goal moves (None: the task's, 0.011
+        for FetchReachMoving, 0.005 for FetchPushMoving; 0 keeps the goal still).
     Returns:
       A ``FetchEnv`` with pure ``reset(key)`` and ``step(state, action)``.
     """
     name = name.removesuffix("-v4")
-    check_task(name)
+    spec = check_task(name)
+    if goal_speed is not None:
+        if not spec.moving:
+            raise ValueError(f"goal_speed applies to the moving tasks "
+                             f"({', '.join(MOVING_TASKS)}), not {name}")
+        spec = dataclasses.replace(spec, goal_speed=float(goal_speed))
     backend = backend or default_backend()
     if backend not in BACKENDS:
         raise ValueError(f"unknown backend {backend!r}; valid: {', '.join(BACKENDS)}")
     scene = scene or ("original" if backend == "mujoco" else "mjx")
     if backend == "mjx" and scene != "mjx":
         raise ValueError("the mjx backend needs scene='mjx': mjx.put_model rejects the original")
-    setup = Setup(name, scene)
+    setup = Setup(spec, scene)
     if backend == "mujoco":
         from .native import NativeBackend
 
@@ -58,5 +73,5 @@ def make_env(name: str, backend: str | None = None, scene: str | None = None,
     return FetchEnv(setup, physics, auto_reset=auto_reset)
 
 
-__all__ = ["BACKENDS", "CPU_XLA_FLAGS", "EPISODE_LENGTH", "FetchEnv", "State", "TASK_NAMES",
-           "default_backend", "make_env"]
+__all__ = ["BACKENDS", "CPU_XLA_FLAGS", "EPISODE_LENGTH", "FetchEnv", "GYMNASIUM_TASK_NAMES",
+           "MOVING_TASK_NAMES", "State", "TASK_NAMES", "default_backend", "make_env"]

@@ -8,6 +8,9 @@ state can be copied, checkpointed, vmapped or replayed like any other array, wit
 rounding of the physics: from the same state and actions the trajectory is gymnasium-robotics'
 (observations agree to float32 round-off; tests/test_envs.py).
 
+A reset from float64 host arrays (``reset_exact``, which ``FetchEnv.reset_to`` uses for numpy
+input) runs on the host without a callback and keeps them exactly; ``reset`` takes float32.
+
 Under ``jax.vmap`` the callback is made once for the whole batch (``vmap_method="broadcast_all"``),
 so one env step of N envs costs one host round trip, whatever N.
 """
@@ -129,19 +132,30 @@ class NativeBackend:
         return self._pack(states, ref, lead), raw.astype(np.float32).reshape(*lead, RAW_SIZE)
 
     def host_reset(self, qpos, qvel):
+        """Reset a batch from float32 qpos/qvel (what the JAX side carries)."""
         lead = qpos.shape[:-1]
         qpos = np.asarray(qpos, np.float64).reshape(-1, qpos.shape[-1])
         qvel = np.asarray(qvel, np.float64).reshape(-1, qvel.shape[-1])
-        n = qpos.shape[0]
-        states = np.repeat(self.template[None], n, axis=0)
-        # The JAX side carries qpos/qvel in float32. Entries the caller left at the settled
-        # state keep its float64 value, so a reset is gymnasium-robotics' settled state exactly,
-        # but for what the caller changed (the sampled object position).
+        states = np.repeat(self.template[None], qpos.shape[0], axis=0)
+        # Entries the caller left at the settled state (equal to it in float32) keep its float64
+        # value, so a reset is gymnasium-robotics' settled state exactly, but for what the caller
+        # changed (the sampled object position).
         for sl, new in ((self._qpos, qpos), (self._qvel, qvel)):
             old = states[:, sl]
             states[:, sl] = np.where(new == old.astype(np.float32), old, new)
+        return self._load(states, lead)
+
+    def host_reset_exact(self, qpos: np.ndarray, qvel: np.ndarray):
+        """Reset a batch from float64 qpos/qvel, taken bit for bit."""
+        lead = qpos.shape[:-1]
+        states = np.repeat(self.template[None], int(np.prod(lead, dtype=np.int64)), axis=0)
+        states[:, self._qpos] = np.asarray(qpos, np.float64).reshape(-1, qpos.shape[-1])
+        states[:, self._qvel] = np.asarray(qvel, np.float64).reshape(-1, qvel.shape[-1])
+        return self._load(states, lead)
+
+    def _load(self, states, lead):
         with self._lock:
-            b, v = self._batch(n)
+            b, v = self._batch(states.shape[0])
             return self._forward_and_pack(b, v, states, lead)
 
     def host_step(self, bits, delta, grip, clock=None):
@@ -197,6 +211,13 @@ class NativeBackend:
             vmap_method="broadcast_all",
         )
         return NativeState(bits), raw
+
+    def reset_exact(self, qpos: np.ndarray, qvel: np.ndarray) -> tuple[NativeState, jax.Array]:
+        """``reset`` from float64 host arrays, kept exactly (JAX itself runs without x64, so a
+        float64 value cannot pass through ``reset``). Runs on the host, outside any trace."""
+        bits, raw = self.host_reset_exact(np.asarray(qpos, np.float64),
+                                          np.asarray(qvel, np.float64))
+        return NativeState(jnp.asarray(bits)), jnp.asarray(raw)
 
     def step(self, state: NativeState, delta: jax.Array, grip: jax.Array):
         bits, raw = jax.pure_callback(

@@ -1,5 +1,10 @@
-"""What both physics backends share: the gymnasium-robotics ``_env_setup`` run natively once,
-the reset template, the ids the task logic needs, and the layout of the raw physics readout.
+"""What both physics backends share: the task constants, the gymnasium-robotics ``_env_setup``
+run natively once, the reset template, the ids the task logic needs, and the layout of the raw
+physics readout.
+
+``TASKS`` are gymnasium-robotics' four ``Fetch*-v4`` tasks, each on its own scene;
+``MOVING_TASKS`` are DHER's dynamic-goal tasks (see ``rdher_jax.envs.fetch``), which reuse the
+FetchReach and FetchPush scenes and differ only in task logic.
 
 A backend turns (physics state, mocap delta, finger command) into (physics state, raw readout).
 The raw readout is a flat float32 vector with the quantities the observation is built from; the
@@ -44,7 +49,18 @@ RAW_SIZE = _o
 
 @dataclasses.dataclass(frozen=True)
 class TaskSpec:
-    """Constants of one Fetch task, as in gymnasium-robotics ``Fetch*-v4``."""
+    """Constants of one Fetch task, as in gymnasium-robotics ``Fetch*-v4`` (and, for the moving
+    tasks, as in DHER's ``DyFetchEnv``).
+
+    The fields after ``distance_threshold`` only matter for the moving tasks:
+      scene: the gymnasium-robotics scene whose model and ``_env_setup`` the task uses
+        ("": the task's own name).
+      goal_speed: metres per env step the goal moves along ``goal_direction`` (0: static goal).
+      goal_direction: unit direction of the goal's motion, the same for every episode.
+      goal_z: if set, every sampled goal gets this height (Dy-Reaching: 0.5).
+      object_x_offset: if set, the object starts at the gripper's xy + (offset, U(+-obj_range)),
+        without rejection sampling (Dy-Pushing: 0.1).
+    """
 
     name: str
     has_object: bool
@@ -56,6 +72,19 @@ class TaskSpec:
     target_range: float
     initial_qpos: dict
     distance_threshold: float = 0.05
+    scene: str = ""
+    goal_speed: float = 0.0
+    goal_direction: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    goal_z: float | None = None
+    object_x_offset: float | None = None
+
+    @property
+    def scene_name(self) -> str:
+        return self.scene or self.name
+
+    @property
+    def moving(self) -> bool:
+        return any(self.goal_direction)
 
 
 _PUSH_QPOS = {
@@ -88,10 +117,26 @@ TASKS: dict[str, TaskSpec] = {
 }
 
 
+# DHER's Dy-Reaching and Dy-Pushing (mengf1/DHER, dygym/dygym/envs/robotics/{reach,push}.py and
+# the DyReachEnv-v0 registration in dher/dher/ddpg_dher/experiment/train_dyreach.py).
+MOVING_TASKS: dict[str, TaskSpec] = {
+    "FetchReachMoving": dataclasses.replace(
+        TASKS["FetchReach"], name="FetchReachMoving", scene="FetchReach", target_range=0.10,
+        distance_threshold=0.01, goal_speed=0.011, goal_direction=(1.0, 0.0, 0.0), goal_z=0.5,
+    ),
+    "FetchPushMoving": dataclasses.replace(
+        TASKS["FetchPush"], name="FetchPushMoving", scene="FetchPush",
+        distance_threshold=0.01, goal_speed=0.005, goal_direction=(0.0, 1.0, 0.0),
+        object_x_offset=0.1,
+    ),
+}
+ALL_TASKS: dict[str, TaskSpec] = {**TASKS, **MOVING_TASKS}
+
+
 def check_task(name: str) -> TaskSpec:
-    if name not in TASKS:
-        raise ValueError(f"unknown Fetch task {name!r}; valid: {', '.join(TASKS)}")
-    return TASKS[name]
+    if name not in ALL_TASKS:
+        raise ValueError(f"unknown Fetch task {name!r}; valid: {', '.join(ALL_TASKS)}")
+    return ALL_TASKS[name]
 
 
 def _set_joint_qpos(m: mujoco.MjModel, d: mujoco.MjData, name: str, value) -> None:
@@ -129,6 +174,9 @@ def state_offsets(m: mujoco.MjModel) -> dict[str, int]:
 class Setup:
     """The task's model after gymnasium-robotics' ``_env_setup``, run once in native MuJoCo.
 
+    ``task`` is a task name or a ``TaskSpec`` (``make_env`` passes one to override its goal
+    speed); the model is that of ``spec.scene_name``.
+
     Attributes used by the backends and the task logic:
       model: the MjModel with the mocap weld reset (``reset_mocap_welds``), as gymnasium's.
       init_qpos, init_qvel: float64 state after the 10 settling steps.
@@ -137,10 +185,10 @@ class Setup:
       initial_gripper_xpos, height_offset: for goal sampling.
     """
 
-    def __init__(self, task: str, variant: str = "original"):
-        self.spec = check_task(task)
+    def __init__(self, task: str | TaskSpec, variant: str = "original"):
+        self.spec = task if isinstance(task, TaskSpec) else check_task(task)
         self.variant = variant
-        m = load_model(task, variant)
+        m = load_model(self.spec.scene_name, variant)
         d = mujoco.MjData(m)
         # _env_setup
         for name, value in self.spec.initial_qpos.items():
