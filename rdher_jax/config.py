@@ -120,7 +120,8 @@ class Config:
     dher_tol: float = _f(0.01, "dher/rdher: goal-matching grid cell in metres (authors: 1 cm)")
     dher_records: int = _f(65536, "dher/rdher: size of the ring of recorded goal matches")
     dher_partners: int = _f(
-        8, "dher/rdher: stored achieved points recorded per new desired-goal cell each cycle"
+        8, "dher/rdher: matches recorded per new achieved point and per new desired-goal cell "
+        "each cycle"
     )
     cher_candidates: int | None = _f(
         None, "cher: 'future' candidates a batch is selected from; null: 2 x batch_size"
@@ -256,9 +257,9 @@ def validate(cfg: Config) -> Config:
         _check(cfg.cher_sample <= cfg.cher_candidates,
                f"cher_sample ({cfg.cher_sample}) must be <= cher_candidates "
                f"({cfg.cher_candidates})")
-    need = cfg.num_envs * (DEFAULT_HORIZON + 1) * (1 + cfg.dher_partners)
+    need = 2 * cfg.num_envs * (DEFAULT_HORIZON + 1) * cfg.dher_partners
     _check(cfg.dher_records >= need,
-           f"dher_records ({cfg.dher_records}) must be >= num_envs * 51 * (1 + dher_partners) "
+           f"dher_records ({cfg.dher_records}) must be >= 2 * num_envs * 51 * dher_partners "
            f"= {need}, the matches one cycle can record")
     _check(cfg.gamma is None or 0.0 < cfg.gamma < 1.0, f"gamma must be in (0, 1), got {cfg.gamma}")
     for name in ("run_dir", "resume"):

@@ -80,8 +80,10 @@ def check_index(keys, idx, buf, field):
     """The sorted index holds exactly the failed episodes' points, each once."""
     keys, idx = np.asarray(keys), np.asarray(idx)
     assert np.all(np.diff(keys.astype(np.int64)) >= 0)
-    np.testing.assert_array_equal(np.sort(idx), np.arange(idx.size))
     W = buf.horizon + 1
+    shift = max(1, (W - 1).bit_length())  # points are slot << shift | step
+    idx = (idx >> shift) * W + (idx & ((1 << shift) - 1))
+    np.testing.assert_array_equal(np.sort(idx), np.arange(idx.size))
     fail = failed_slots(buf)
     want_keys = np.asarray(dher.cell_keys(jnp.asarray(getattr(buf, field)), TOL)).reshape(-1)
     live = np.repeat(fail, W)
@@ -106,15 +108,17 @@ def test_dher_index_and_records_match_brute_force(seed, n_adds, span):
         check_index(state.g_keys, state.g_idx, buf, "g")
         check_index(state.ag_keys, state.ag_idx, buf, "ag")
     matches = brute_matches(buf)
+    usable = {mt for mt in matches if mt[3] >= 1}
     gen = np.asarray(state.slot_gen)
     n = int(state.rec_count)
-    rec = {
-        (int(i), int(p))
-        for i, p, g_ in zip(np.asarray(state.rec_ep)[:n], np.asarray(state.rec_t)[:n],
-                            np.asarray(state.rec_gen)[:n], strict=True)
-        if g_ == gen[i]
-    }
-    assert {(i, p) for i, p, _, _ in matches} <= rec
+    rec = [tuple(int(x) for x in r) for r in zip(
+        *(np.asarray(getattr(state, f))[:n] for f in ("rec_i", "rec_p", "rec_j", "rec_q",
+                                                       "rec_gi", "rec_gj")), strict=True)]
+    live = {r[:4] for r in rec if r[4] == gen[r[0]] and r[5] == gen[r[2]]}
+    # Sound: every live record is a current match of two failed episodes with p, q >= 1.
+    assert live <= usable
+    # Complete: every achieved point with a usable match has a live record.
+    assert {(i, p) for i, p, _, _ in usable} <= {(i, p) for i, p, _, _ in live}
     # The recent success rate is that of the stored episodes (all of them: fewer than 100).
     fail = failed_slots(buf)[: int(buf.num_episodes)]
     assert float(state.success_rate) == pytest.approx(1.0 - fail.mean())
@@ -190,10 +194,11 @@ def test_dher_hand_made_episodes():
     f = dher.build_dher(reward_fn, 64, 4, T, D, num_new=3, records=4096, partners=8)
     buf = rb.add(rb.init(4 * T, T, OBS, D, ACT), ep)
     state = jax.jit(f.update)(f.init(), buf, PARAMS)
-    recs = {(int(a), int(b)) for a, b in
-            zip(np.asarray(state.rec_ep)[: int(state.rec_count)],
-                np.asarray(state.rec_t)[: int(state.rec_count)], strict=True)}
-    assert recs == {(0, 3)}
+    n = int(state.rec_count)
+    recs = {tuple(int(x) for x in r) for r in zip(
+        *(np.asarray(getattr(state, f))[:n] for f in ("rec_i", "rec_p", "rec_j", "rec_q")),
+        strict=True)}
+    assert recs == {(0, 3, 1, 5)}
     assert float(state.success_rate) == pytest.approx(1 / 3)
     tr, ok = jax.jit(f.gather_combined)(f.draw_combined(jax.random.PRNGKey(0), 512), state,
                                         buf, PARAMS)

@@ -12,19 +12,19 @@ Matching on device, over the whole buffer
 int32 cell key; two sorted indices, one of desired-goal keys and one of achieved-goal keys,
 cover the whole buffer (points of successful or unwritten episodes carry a sentinel key that
 sorts last). A cycle does not re-sort them: the points of the slots just overwritten are
-dropped and the new episodes' points merged in, in one pass linear in the buffer (``_merge``).
+dropped and the new episodes' points merged in, in one pass linear in the buffer (``merge``).
 
 New matches can only involve the new episodes, so each cycle looks up (binary search)
 
 - every achieved point of a new failed episode among all desired points, and
-- every distinct desired point of a new failed episode among all achieved points (up to
-  ``partners`` achieved points each),
+- every desired cell of a new failed episode among all older achieved points,
 
-and appends the achieved side ``(i, p)`` of each match to a ring of ``records``, as the authors
-record matches when episodes are stored. Sampling draws a record, looks its cell up again in the
-current index, picks one matching desired point ``(j, q)`` uniformly, and builds the combined
-transition; a record whose episode was overwritten since, or whose match is gone, falls back to
-a plain sample. Nothing is ever a host hash table, and nothing is quadratic in the buffer.
+takes up to ``partners`` matches of each, spread evenly over the matching range, and appends
+the pairs ``(i, p, j, q)`` to a ring of ``records``, as the authors record matches when episodes
+are stored. Sampling draws a record, checks that both episodes are still stored (slot
+generations) and builds the combined transition; a dead record falls back to a plain sample.
+Nothing is ever a host hash table, nothing is quadratic in the buffer, and a sample does no
+search at all.
 
 Mixing
 ------
@@ -54,15 +54,17 @@ RECENT = 100  # episodes behind the success rate that sets the combined fraction
 
 @struct.dataclass
 class DHERState:
-    """Match indices over the whole buffer.
+    """Match indices over the whole buffer, and the recorded matches.
 
     Attributes:
         g_keys, g_idx: ``(P,)`` sorted cell keys of desired goals and their points
-            (``slot * (T+1) + step``), ``P = capacity_episodes * (T+1)``.
+            (``slot << SHIFT | step``), ``P = capacity_episodes * (T+1)``.
         ag_keys, ag_idx: the same for achieved goals.
         slot_gen: ``(capacity_episodes,)`` int32, how often each slot was written.
-        rec_ep, rec_t, rec_gen: ``(records,)`` int32 ring of matched achieved points and the
-            generation of their slot when recorded.
+        rec_i, rec_p, rec_j, rec_q: ``(records,)`` int32 ring of matches
+            ``ag[i, p] == g[j, q]`` (``i != j`` failed, ``p, q >= 1``).
+        rec_gi, rec_gj: generations of slots ``i`` and ``j`` when the match was recorded; a
+            record is live while both slots still hold those episodes.
         rec_pos: int32 next record to write. rec_count: int32 records stored.
         success_rate: float32 success of the last 100 stored episodes.
     """
@@ -72,9 +74,12 @@ class DHERState:
     ag_keys: jax.Array
     ag_idx: jax.Array
     slot_gen: jax.Array
-    rec_ep: jax.Array
-    rec_t: jax.Array
-    rec_gen: jax.Array
+    rec_i: jax.Array
+    rec_p: jax.Array
+    rec_j: jax.Array
+    rec_q: jax.Array
+    rec_gi: jax.Array
+    rec_gj: jax.Array
     rec_pos: jax.Array
     rec_count: jax.Array
     success_rate: jax.Array
@@ -164,25 +169,39 @@ def build_dher(compute_reward: RewardFn, batch_size: int, capacity_episodes: int
     del goal_dim  # shapes come from the buffer; kept for a uniform factory signature
     cap, W = capacity_episodes, T + 1
     P = cap * W
-    n_rec_new = num_new * W * (1 + partners)
+    shift = max(1, (W - 1).bit_length())  # a point is slot << shift | step: no division
+    step_mask = (1 << shift) - 1
+    n_rec_new = 2 * num_new * W * partners
     if records < n_rec_new:
         raise ValueError(f"dher_records ({records}) must be >= {n_rec_new}, the records one "
                          "cycle can add")
+    ks = jnp.arange(partners, dtype=jnp.int32)
 
     def init() -> DHERState:
         z = jnp.zeros((records,), jnp.int32)
         full = jnp.full((P,), SENTINEL, jnp.int32)
+        points = ((jnp.arange(cap, dtype=jnp.int32)[:, None] << shift)
+                  | jnp.arange(W, dtype=jnp.int32)[None, :]).reshape(-1)
         return DHERState(
-            g_keys=full, g_idx=jnp.arange(P, dtype=jnp.int32),
-            ag_keys=full, ag_idx=jnp.arange(P, dtype=jnp.int32),
+            g_keys=full, g_idx=points, ag_keys=full, ag_idx=points,
             slot_gen=jnp.zeros((cap,), jnp.int32),
-            rec_ep=z, rec_t=z, rec_gen=z,
+            rec_i=z, rec_p=z, rec_j=z, rec_q=z, rec_gi=z, rec_gj=z,
             rec_pos=jnp.zeros((), jnp.int32), rec_count=jnp.zeros((), jnp.int32),
             success_rate=jnp.zeros((), jnp.float32),
         )
 
     def failed_of(ag_last: jax.Array, g_last: jax.Array) -> jax.Array:
         return compute_reward(ag_last, g_last) < 0
+
+    def partners_in(keys, idx, query):
+        """Up to ``partners`` entries with each query's key, spread evenly over its range:
+        their points ``(Q, partners)`` and which are real."""
+        lo = jnp.searchsorted(keys, query, side="left", method="scan").astype(jnp.int32)
+        hi = jnp.searchsorted(keys, query, side="right", method="scan").astype(jnp.int32)
+        cnt = (hi - lo)[:, None]
+        off = jnp.where(cnt <= partners, ks[None, :], (ks[None, :] * cnt) // partners)
+        pt = idx[jnp.minimum(lo[:, None] + off, P - 1)]
+        return pt, (ks[None, :] < cnt) & (query != SENTINEL)[:, None]
 
     def update(state: DHERState, buffer: BufferState, params) -> DHERState:
         tol = params.dher_tol
@@ -191,41 +210,38 @@ def build_dher(compute_reward: RewardFn, batch_size: int, capacity_episodes: int
         gen = state.slot_gen.at[slots].add(1)
         ag, g = buffer.ag[slots], buffer.g[slots]  # (n, W, d)
         failed = failed_of(ag[:, T], g[:, T])  # (n,)
-        pts = (slots[:, None] * W + jnp.arange(W, dtype=jnp.int32)).reshape(-1)
+        steps = jnp.arange(W, dtype=jnp.int32)
+        pts = ((slots[:, None] << shift) | steps[None, :]).reshape(-1)
         ka = jnp.where(failed[:, None], cell_keys(ag, tol), SENTINEL)  # (n, W)
         kg = jnp.where(failed[:, None], cell_keys(g, tol), SENTINEL)
 
         def drop(idx):
-            return (idx // W - first) % cap < num_new
+            return ((idx >> shift) - first) % cap < num_new
 
         g_keys, g_idx = merge(state.g_keys, state.g_idx, drop(state.g_idx), kg.reshape(-1), pts)
         ag_keys, ag_idx = merge(state.ag_keys, state.ag_idx, drop(state.ag_idx),
                                 ka.reshape(-1), pts)
 
-        # (a) new achieved points among all desired points, minus the episode's own goals.
-        qa = ka.reshape(-1)
-        cnt = (jnp.searchsorted(g_keys, qa, side="right", method="scan")
-               - jnp.searchsorted(g_keys, qa, side="left", method="scan"))
-        own = jnp.sum(ka[:, :, None] == kg[:, None, :], axis=-1).reshape(-1)
-        step = jnp.tile(jnp.arange(W, dtype=jnp.int32), num_new)
-        ep_a = jnp.repeat(slots, W)
-        ok_a = (qa != SENTINEL) & (cnt - own > 0) & (step >= 1)
+        # (a) each new achieved point against all desired points (new episodes included).
+        pt_a, ok_a = partners_in(g_keys, g_idx, ka.reshape(-1))
+        i_a = jnp.broadcast_to(jnp.repeat(slots, W)[:, None], pt_a.shape)
+        p_a = jnp.broadcast_to(jnp.tile(steps, num_new)[:, None], pt_a.shape)
+        j_a, q_a = pt_a >> shift, pt_a & step_mask
+        # (b) each new desired cell against all older achieved points. Of a run of steps with
+        # the same cell only the last is looked up: it allows the longest combination.
+        last = jnp.concatenate([kg[:, 1:] != kg[:, :-1], jnp.ones((num_new, 1), bool)], 1)
+        pt_b, ok_b = partners_in(ag_keys, ag_idx, jnp.where(last, kg, SENTINEL).reshape(-1))
+        i_b, p_b = pt_b >> shift, pt_b & step_mask
+        j_b = jnp.broadcast_to(jnp.repeat(slots, W)[:, None], pt_b.shape)
+        q_b = jnp.broadcast_to(jnp.tile(steps, num_new)[:, None], pt_b.shape)
+        ok_b = ok_b & ((i_b - first) % cap >= num_new)  # new-with-new matches are (a)'s
 
-        # (b) distinct new desired points among all achieved points: up to `partners` older
-        # achieved points each (matches with the new episodes themselves are (a)'s).
-        fresh = jnp.concatenate([jnp.ones((num_new, 1), bool), kg[:, 1:] != kg[:, :-1]], 1)
-        qg = jnp.where(fresh, kg, SENTINEL).reshape(-1)
-        lo = jnp.searchsorted(ag_keys, qg, side="left", method="scan").astype(jnp.int32)
-        hi = jnp.searchsorted(ag_keys, qg, side="right", method="scan").astype(jnp.int32)
-        pos = lo[:, None] + jnp.arange(partners, dtype=jnp.int32)[None, :]
-        pt = ag_idx[jnp.minimum(pos, P - 1)]
-        ep_b, t_b = pt // W, pt % W
-        is_new = (ep_b - first) % cap < num_new
-        ok_b = (qg != SENTINEL)[:, None] & (pos < hi[:, None]) & ~is_new & (t_b >= 1)
-
-        rec_ep = jnp.concatenate([ep_a, ep_b.reshape(-1)])
-        rec_t = jnp.concatenate([step, t_b.reshape(-1)])
-        ok = jnp.concatenate([ok_a, ok_b.reshape(-1)])
+        i, p, j, q = (jnp.concatenate([x.reshape(-1), y.reshape(-1)])
+                      for x, y in ((i_a, i_b), (p_a, p_b), (j_a, j_b), (q_a, q_b)))
+        # Equal keys of different cells (10 m apart) are rejected on the cells themselves.
+        same = jnp.all(cells(buffer.ag[i, p], tol) == cells(buffer.g[j, q], tol), axis=-1)
+        ok = (jnp.concatenate([ok_a.reshape(-1), ok_b.reshape(-1)]) & same & (i != j)
+              & (p >= 1) & (q >= 1))
         rank = jnp.cumsum(ok, dtype=jnp.int32) - 1
         n_ok = jnp.sum(ok, dtype=jnp.int32)
         where = jnp.where(ok, (state.rec_pos + rank) % records, records)
@@ -242,37 +258,30 @@ def build_dher(compute_reward: RewardFn, batch_size: int, capacity_episodes: int
 
         return DHERState(
             g_keys=g_keys, g_idx=g_idx, ag_keys=ag_keys, ag_idx=ag_idx, slot_gen=gen,
-            rec_ep=put(state.rec_ep, rec_ep), rec_t=put(state.rec_t, rec_t),
-            rec_gen=put(state.rec_gen, gen[rec_ep]),
+            rec_i=put(state.rec_i, i), rec_p=put(state.rec_p, p),
+            rec_j=put(state.rec_j, j), rec_q=put(state.rec_q, q),
+            rec_gi=put(state.rec_gi, gen[i]), rec_gj=put(state.rec_gj, gen[j]),
             rec_pos=(state.rec_pos + n_ok) % records,
             rec_count=jnp.minimum(state.rec_count + n_ok, records),
             success_rate=rate.astype(jnp.float32),
         )
 
     def draw_combined(key: jax.Array, n: int) -> jax.Array:
-        """Every random draw of ``n`` combined rows: ``(4, n)`` uint32 bits."""
-        return jax.random.bits(key, (4, n), jnp.uint32)
+        """Every random draw of ``n`` combined rows: ``(2, n)`` uint32 bits."""
+        return jax.random.bits(key, (2, n), jnp.uint32)
 
     def gather_combined(bits, state: DHERState, buffer: BufferState, params
                         ) -> tuple[Transition, jax.Array]:
-        """Combined transitions for given draws, and which rows are valid."""
-        tol = params.dher_tol
+        """Combined transitions for given draws, and which rows are valid (live records)."""
+        del params
         n_rec = jnp.maximum(state.rec_count, 1).astype(jnp.uint32)
         r = (bits[0] % n_rec).astype(jnp.int32)
-        i, p = state.rec_ep[r], state.rec_t[r]
-        ok = (state.rec_count > 0) & (state.rec_gen[r] == state.slot_gen[i])
-        ka = cell_keys(buffer.ag[i, p], tol)
-        lo = jnp.searchsorted(state.g_keys, ka, side="left", method="scan").astype(jnp.int32)
-        hi = jnp.searchsorted(state.g_keys, ka, side="right", method="scan").astype(jnp.int32)
-        cnt = hi - lo
-        pick = lo + (bits[1] % jnp.maximum(cnt, 1).astype(jnp.uint32)).astype(jnp.int32)
-        pt = state.g_idx[jnp.minimum(pick, state.g_idx.shape[0] - 1)]
-        j, q = pt // W, pt % W
-        same = jnp.all(cells(buffer.ag[i, p], tol) == cells(buffer.g[j, q], tol), axis=-1)
-        m = jnp.minimum(p, q)
-        ok = ok & (cnt > 0) & (ka != SENTINEL) & (j != i) & same & (m >= 1)
+        i, p, j, q = state.rec_i[r], state.rec_p[r], state.rec_j[r], state.rec_q[r]
+        ok = ((state.rec_count > 0) & (state.rec_gi[r] == state.slot_gen[i])
+              & (state.rec_gj[r] == state.slot_gen[j]))
+        m = jnp.maximum(jnp.minimum(p, q), 1)
         # Offset t in [0, m): E_i's step p - m + t with E_j's goals at q - m + t and one later.
-        t = (bits[2] % jnp.maximum(m, 1).astype(jnp.uint32)).astype(jnp.int32)
+        t = (bits[1] % m.astype(jnp.uint32)).astype(jnp.int32)
         s, gq = p - m + t, q - m + t
         next_goal = buffer.g[j, gq + 1]
         tr = Transition(
