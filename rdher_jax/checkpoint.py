@@ -225,48 +225,60 @@ class Checkpointer:
     """Latest training state and best policy of one run, under ``<run_dir>/checkpoints``.
 
     Saves are synchronous: when ``save_*`` returns, the step is renamed into place on disk.
+    ``latest=False`` or ``best=False`` leaves that slot out (a sweep keeps its runs' stacked
+    latest state in the sweep directory and each run's best policy in the run's).
     ``read_only=True`` is for readers of a run that may still be training (evaluation,
     plotting): they never delete anything, including the writer's in-progress saves.
     """
 
-    def __init__(self, run_dir: str | Path, read_only: bool = False) -> None:
+    def __init__(self, run_dir: str | Path, read_only: bool = False, latest: bool = True,
+                 best: bool = True) -> None:
         self.directory = Path(run_dir) / "checkpoints"
-        self._latest = _Slot(self.directory / "latest", read_only)
-        self._best = _Slot(self.directory / "best", read_only)
+        # A sweep keeps its stacked latest state in its own directory and each run's best
+        # policy in the run's, so either slot can be left out.
+        self._latest = _Slot(self.directory / "latest", read_only) if latest else None
+        self._best = _Slot(self.directory / "best", read_only) if best else None
+        self._slots = [s for s in (self._latest, self._best) if s is not None]
+
+    def _slot(self, name: str) -> _Slot:
+        slot = getattr(self, f"_{name}")
+        if slot is None:
+            raise CheckpointError(f"{self.directory} was opened without its {name} slot")
+        return slot
 
     def save_latest(self, epoch: int, state: Any, meta: Mapping[str, Any]) -> None:
         """Save the full training state after ``epoch``, replacing the previous one."""
-        self._latest.save(epoch, state, meta)
+        self._slot("latest").save(epoch, state, meta)
 
     def save_best(self, epoch: int, policy: Any, meta: Mapping[str, Any]) -> None:
         """Save the policy of a new best epoch, replacing the previous best."""
-        self._best.save(epoch, policy, meta)
+        self._slot("best").save(epoch, policy, meta)
 
     def latest_epoch(self) -> int | None:
         """Epoch of the latest complete checkpoint, or None."""
-        return self._latest.latest()
+        return self._slot("latest").latest()
 
     def best_epoch(self) -> int | None:
         """Epoch of the best-policy checkpoint, or None."""
-        return self._best.latest()
+        return self._slot("best").latest()
 
     def best_meta(self) -> dict | None:
         """Metadata saved with the best policy (e.g. its test success), or None."""
-        found = self._best.meta()
+        found = self._slot("best").meta()
         return None if found is None else found[1]
 
     def restore_latest(self, template: Any) -> tuple[int, Any, dict]:
         """``(epoch, state, meta)`` of the latest checkpoint, restored into ``template``'s
         structure, shapes and dtypes (a mismatch raises CheckpointError)."""
-        return self._latest.restore(template)
+        return self._slot("latest").restore(template)
 
     def restore_best(self, template: Any) -> tuple[int, Any, dict]:
         """``(epoch, policy, meta)`` of the best checkpoint, like :meth:`restore_latest`."""
-        return self._best.restore(template)
+        return self._slot("best").restore(template)
 
     def discard_after(self, epoch: int) -> None:
         """Delete checkpoints newer than ``epoch`` (a resume from ``epoch`` abandons them)."""
-        for slot in (self._latest, self._best):
+        for slot in self._slots:
             slot._check_writable()
             step = slot.latest()
             if step is not None and step > epoch:
@@ -275,8 +287,8 @@ class Checkpointer:
 
     def close(self) -> None:
         """Release orbax's resources; the object may be used again afterwards."""
-        self._latest.close()
-        self._best.close()
+        for slot in self._slots:
+            slot.close()
 
     def __enter__(self) -> "Checkpointer":
         return self

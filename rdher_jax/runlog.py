@@ -11,7 +11,7 @@ import json
 import math
 import os
 import uuid
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -19,7 +19,9 @@ import numpy as np
 
 from rdher_jax.config import Config, ConfigError, default_run_dir
 
-METRIC_FIELDS: tuple[str, ...] = (
+# The first columns of metrics.csv, in this order; any other field of the trainer's
+# EpochMetrics follows them in declaration order (see metric_fields).
+LEADING_FIELDS: tuple[str, ...] = (
     "epoch",
     "env_steps",
     "updates",
@@ -30,29 +32,117 @@ METRIC_FIELDS: tuple[str, ...] = (
     "actor_loss",
     "q_mean",
 )
+# Columns the training loop adds to the trainer's metrics.
+LOOP_FIELDS: tuple[str, ...] = ("epoch", "wall_time")
+
+
+def metric_fields(names: Iterable[str]) -> tuple[str, ...]:
+    """The CSV columns for an epoch's metric ``names`` (e.g. the fields of ``EpochMetrics``).
+
+    :data:`LEADING_FIELDS` come first (those that are among ``names`` or :data:`LOOP_FIELDS`),
+    then the remaining names in the order given, so that new metrics only ever add columns.
+    """
+    names = list(names)
+    have = set(names) | set(LOOP_FIELDS)
+    lead = [f for f in LEADING_FIELDS if f in have]
+    return tuple(lead + [n for n in dict.fromkeys(names) if n not in lead])
+
+
+def _os_reason(e: OSError) -> str:
+    return e.strerror or type(e).__name__
+
+
+def check_dir_usable(path: str | Path, what: str) -> None:
+    """Raise a one-line ConfigError unless ``path`` is, or can be created as, a directory this
+    process can write files into. Leaves nothing behind: directories it had to create to find
+    out are removed again, and so is its probe file.
+    """
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise ConfigError(f"{what} {path} exists and is not a directory")
+    missing: list[Path] = []
+    p = path.absolute()
+    while not p.exists() and not p.is_symlink() and p != p.parent:
+        missing.append(p)
+        p = p.parent
+    if not p.is_dir():
+        raise ConfigError(f"cannot create {what} {path}: {p} is not a directory")
+    created: list[Path] = []
+    try:
+        for d in reversed(missing):
+            try:
+                d.mkdir()
+            except OSError as e:
+                raise ConfigError(f"cannot create {what} {path}: {_os_reason(e)}") from None
+            created.append(d)
+        probe = path / f".write-probe-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+        try:
+            probe.write_bytes(b"")
+            probe.unlink()
+        except OSError as e:
+            raise ConfigError(f"{what} {path} is not writable: {_os_reason(e)}") from None
+    finally:
+        for d in reversed(created):
+            with contextlib.suppress(OSError):
+                d.rmdir()
+
+
+def check_fresh_dir(path: str | Path, what: str = "run_dir") -> None:
+    """Raise a one-line ConfigError unless ``path`` can become a new output directory: absent
+    or empty, and writable (checked by :func:`check_dir_usable`, which leaves nothing behind)."""
+    path = Path(path)
+    if path.is_dir() and any(path.iterdir()):
+        raise ConfigError(
+            f"{what} {path} exists and is not empty; pass resume={path} to continue it "
+            f"or choose another {what}"
+        )
+    check_dir_usable(path, what)
+
+
+def check_resume_dir(path: str | Path, marker: str = "config.yaml") -> None:
+    """Raise a one-line ConfigError unless ``path`` is a writable output directory holding
+    ``marker`` (the file that every run or sweep directory starts with)."""
+    path = Path(path)
+    if not path.exists():
+        raise ConfigError(f"cannot resume: {path} does not exist")
+    if not path.is_dir():
+        raise ConfigError(f"cannot resume: {path} is not a directory")
+    if not (path / marker).is_file():
+        raise ConfigError(f"cannot resume: {path} has no {marker}, so it is no run directory")
+    check_dir_usable(path, "resume directory")
+
+
+def make_dir(path: str | Path, what: str = "run_dir") -> Path:
+    """Create ``path`` (and its parents) after :func:`check_fresh_dir`; a failure is a
+    one-line ConfigError that leaves no directory behind."""
+    path = Path(path)
+    check_fresh_dir(path, what)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:  # only if something changed since the check
+        raise ConfigError(f"cannot create {what} {path}: {_os_reason(e)}") from None
+    return path
 
 
 def make_run_dir(cfg: Config) -> Path:
     """Create and return the run directory of ``cfg``.
 
-    A fresh run refuses a directory that exists and is not empty (it would mix two runs); a
-    resumed run (``cfg.resume``) requires the directory to exist.
+    A fresh run refuses a directory that exists and is not empty (it would mix two runs), or
+    one that cannot be created or written; a resumed run (``cfg.resume``) requires a writable
+    run directory with its config.yaml. Every refusal is a one-line ConfigError.
     """
     if cfg.resume is not None:
-        path = Path(cfg.resume)
-        if not path.is_dir():
-            raise ConfigError(f"cannot resume: run directory {path} does not exist")
-        return path
-    path = Path(cfg.run_dir if cfg.run_dir is not None else default_run_dir(cfg))
-    if path.exists() and not path.is_dir():
-        raise ConfigError(f"run_dir {path} exists and is not a directory")
-    if path.is_dir() and any(path.iterdir()):
-        raise ConfigError(
-            f"run_dir {path} exists and is not empty; pass resume={path} to continue it "
-            "or choose another run_dir"
-        )
-    path.mkdir(parents=True, exist_ok=True)
-    return path
+        check_resume_dir(cfg.resume)
+        return Path(cfg.resume)
+    return make_dir(cfg.run_dir if cfg.run_dir is not None else default_run_dir(cfg))
+
+
+def check_run_dir(cfg: Config) -> None:
+    """What :func:`make_run_dir` checks, without creating anything."""
+    if cfg.resume is not None:
+        check_resume_dir(cfg.resume)
+    else:
+        check_fresh_dir(cfg.run_dir if cfg.run_dir is not None else default_run_dir(cfg))
 
 
 def _fsync_dir(path: Path) -> None:
@@ -126,11 +216,13 @@ def _cell(v: Any) -> Any:
 class MetricsCSV:
     """Per-epoch metrics appended to a CSV file, durable after every row.
 
-    An existing file is continued (its header must equal ``fieldnames``); a torn last line
-    left by a crash mid-write is dropped on open.
+    An existing file is continued; a torn last line left by a crash mid-write is dropped on
+    open. Its header must equal ``fieldnames``, except that with ``extend=True`` a file whose
+    columns are all among ``fieldnames`` (written before metrics were added) is rewritten with
+    the new header, its old rows keeping empty cells in the new columns.
     """
 
-    def __init__(self, path: str | Path, fieldnames: Sequence[str] = METRIC_FIELDS) -> None:
+    def __init__(self, path: str | Path, fieldnames: Sequence[str], extend: bool = False) -> None:
         self.path = Path(path)
         self.fieldnames = list(fieldnames)
         if len(set(self.fieldnames)) != len(self.fieldnames):
@@ -142,11 +234,15 @@ class MetricsCSV:
         self._drop_torn_line()
         with open(self.path, newline="", encoding="utf-8") as f:
             header = next(csv.reader(f), None)
-        if header != self.fieldnames:
-            raise ValueError(
-                f"{self.path} has columns {header}, expected {self.fieldnames}; "
-                "it belongs to a different version of the trainer"
-            )
+        if header == self.fieldnames:
+            return
+        if extend and header and set(header) <= set(self.fieldnames):
+            self._rewrite(self.rows())
+            return
+        raise ValueError(
+            f"{self.path} has columns {header}, expected {self.fieldnames}; "
+            "it belongs to a different version of the trainer"
+        )
 
     def _drop_torn_line(self) -> None:
         data = self.path.read_bytes()

@@ -1,6 +1,7 @@
 """Run directory, metrics CSV, plot, atomic JSON and TensorBoard writers."""
 
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -9,14 +10,19 @@ import pytest
 
 from rdher_jax.config import Config, ConfigError, parse_args
 from rdher_jax.runlog import (
-    METRIC_FIELDS,
+    LEADING_FIELDS,
     MetricsCSV,
     TBWriter,
+    check_dir_usable,
+    check_run_dir,
     make_run_dir,
+    metric_fields,
     plot_success,
     write_json_atomic,
     write_text_atomic,
 )
+
+METRIC_FIELDS = LEADING_FIELDS
 
 
 def _row(epoch: int) -> dict:
@@ -45,12 +51,85 @@ def test_make_run_dir(tmp_path: Path) -> None:
     (run / "metrics.csv").write_text("x\n")
     with pytest.raises(ConfigError, match="exists and is not empty; pass resume="):
         make_run_dir(cfg)
+    with pytest.raises(ConfigError, match="has no config.yaml"):
+        make_run_dir(parse_args([f"resume={run}"]))
+    (run / "config.yaml").write_text("env: FetchReach\n")
     assert make_run_dir(parse_args([f"resume={run}"])) == run
     with pytest.raises(ConfigError, match="does not exist"):
         make_run_dir(parse_args([f"resume={tmp_path / 'missing'}"]))
     (tmp_path / "file").write_text("")
     with pytest.raises(ConfigError, match="not a directory"):
         make_run_dir(parse_args([f"run_dir={tmp_path / 'file'}"]))
+    with pytest.raises(ConfigError, match="cannot create run_dir .*file is not a directory"):
+        make_run_dir(parse_args([f"run_dir={tmp_path / 'file' / 'x'}"]))
+    with pytest.raises(ConfigError, match="has no config.yaml"):
+        make_run_dir(parse_args([f"resume={tmp_path / 'a'}"]))
+
+
+def test_unusable_dirs_leave_nothing_behind(tmp_path: Path) -> None:
+    before = sorted(tmp_path.rglob("*"))
+    check_dir_usable(tmp_path / "new" / "deeper", "run_dir")  # usable: created, then removed
+    check_run_dir(parse_args([f"run_dir={tmp_path / 'other' / 'run'}"]))
+    assert sorted(tmp_path.rglob("*")) == before
+    for bad in ("/proc/x/y", "/sys/rdher-test"):
+        with pytest.raises(ConfigError, match="cannot create run_dir") as info:
+            make_run_dir(parse_args([f"run_dir={bad}"]))
+        assert "\n" not in str(info.value)
+        assert not Path(bad).exists()
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root may write into read-only directories")
+def test_read_only_dirs_are_refused(tmp_path: Path) -> None:
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    (ro / "config.yaml").write_text("env: FetchReach\n")
+    ro.chmod(0o555)
+    try:
+        with pytest.raises(ConfigError, match="cannot create run_dir .*Permission denied"):
+            make_run_dir(parse_args([f"run_dir={ro / 'a' / 'b'}"]))
+        with pytest.raises(ConfigError, match="is not writable"):
+            make_run_dir(parse_args([f"resume={ro}"]))
+        assert sorted(p.name for p in ro.iterdir()) == ["config.yaml"]
+    finally:
+        ro.chmod(0o755)
+
+
+def test_unwritable_dirs_are_refused_for_root_too(tmp_path: Path,
+                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    """The same refusals as above, with the filesystem's answer simulated (root bypasses
+    permission bits, and the suite may run as root)."""
+    real_mkdir, real_write = Path.mkdir, Path.write_bytes
+
+    def mkdir(self, *a, **kw):
+        if self.name == "b":
+            raise PermissionError(13, "Permission denied")
+        return real_mkdir(self, *a, **kw)
+
+    def write_bytes(self, data):
+        if self.name.startswith(".write-probe-"):
+            raise OSError(30, "Read-only file system")
+        return real_write(self, data)
+
+    monkeypatch.setattr(Path, "mkdir", mkdir)
+    with pytest.raises(ConfigError, match="cannot create run_dir .*Permission denied"):
+        make_run_dir(parse_args([f"run_dir={tmp_path / 'a' / 'b' / 'c'}"]))
+    assert list(tmp_path.iterdir()) == []  # 'a' was created to find out, and removed
+    monkeypatch.setattr(Path, "write_bytes", write_bytes)
+    with pytest.raises(ConfigError, match="run_dir .* is not writable: Read-only file system"):
+        make_run_dir(parse_args([f"run_dir={tmp_path / 'x' / 'y'}"]))
+    assert list(tmp_path.iterdir()) == []
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "config.yaml").write_text("env: FetchReach\n")
+    with pytest.raises(ConfigError, match="resume directory .* is not writable"):
+        make_run_dir(parse_args([f"resume={tmp_path / 'run'}"]))
+    assert [p.name for p in (tmp_path / "run").iterdir()] == ["config.yaml"]
+
+
+def test_metric_fields_keep_the_leading_columns_first() -> None:
+    names = ["test_success", "train_success", "critic_loss", "actor_loss", "q_mean",
+             "env_steps", "updates", "frac_her", "bias_real"]
+    assert metric_fields(names) == (*LEADING_FIELDS, "frac_her", "bias_real")
+    assert metric_fields(["updates", "x"]) == ("epoch", "updates", "wall_time", "x")
 
 
 def test_make_run_dir_default_name(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -94,13 +173,20 @@ def test_metrics_csv_torn_line_and_header_mismatch(tmp_path: Path) -> None:
     assert path.read_text() == "epoch,x\n1,0.5\n2,0.25\n"
     with pytest.raises(ValueError, match="has columns"):
         MetricsCSV(path, ["epoch", "y"])
+    with pytest.raises(ValueError, match="has columns"):
+        MetricsCSV(path, ["epoch", "y"], extend=True)  # x would be lost
+    log = MetricsCSV(path, ["epoch", "x", "y"], extend=True)  # a metric was added
+    assert path.read_text() == "epoch,x,y\n1,0.5,\n2,0.25,\n"
+    log.append({"epoch": 3, "x": 1, "y": 2})
+    assert MetricsCSV(path, ["epoch", "x", "y"]).rows()[-1] == {"epoch": "3", "x": "1", "y": "2"}
+    path.write_text("epoch,x\n1,0.5\n")
     path.write_text("epo")  # even the header was torn
     assert MetricsCSV(path, ["epoch", "x"]).rows() == []
     assert path.read_text() == "epoch,x\n"
 
 
 def test_plot_success(tmp_path: Path) -> None:
-    log = MetricsCSV(tmp_path / "metrics.csv")
+    log = MetricsCSV(tmp_path / "metrics.csv", METRIC_FIELDS)
     png = tmp_path / "success.png"
     plot_success(log.path, png, "empty")  # header only: still a valid image
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -152,19 +152,21 @@ def test_fetch_reach_her_learns(tmp_path):
 
 def test_vmapped_hparams_equal_separate_runs(tmp_path):
     """The epoch function vmaps over seeds x hyperparameters (the sweep axis) and gives the
-    same results as separate runs: what makes one compiled program per sweep possible."""
+    same results as separate runs: what makes one compiled program per sweep possible. Each
+    run's hyperparameters come from its own Config; the pytree is never opened by name."""
+    from rdher_jax.trainer import hparams_from_config
+
     cfg = tiny_cfg(tmp_path, epochs=1)
     _, trainer = train_mod.build(cfg)
-    hp = trainer.hparams
-    hps = jax.tree.map(lambda x: jax.numpy.stack([x, x]), hp)
-    hps = hps.replace(ddpg=hps.ddpg.replace(critic_lr=jax.numpy.array([1e-3, 3e-3]),
-                                            lambda_r=jax.numpy.array([1.0, 2.0])))
-    keys = jax.random.split(jax.random.PRNGKey(7), 2)
+    cfgs = [dataclasses.replace(cfg, critic_lr=1e-3, lambda_r=1.0, seed=7),
+            dataclasses.replace(cfg, critic_lr=3e-3, lambda_r=2.0, seed=8)]
+    hps = jax.tree.map(lambda *x: jax.numpy.stack(x), *[hparams_from_config(c) for c in cfgs])
+    keys = jax.numpy.stack([jax.random.PRNGKey(c.seed) for c in cfgs])
     vts = jax.jit(jax.vmap(trainer.init))(keys, hps)
     vts, vm = jax.jit(jax.vmap(trainer.epoch))(vts, hps)
     init, epoch = jax.jit(trainer.init), jax.jit(trainer.epoch)
-    for i in range(2):
-        hp_i = jax.tree.map(lambda x, i=i: x[i], hps)
+    for i, c in enumerate(cfgs):
+        hp_i = hparams_from_config(c)
         ts, m = epoch(init(keys[i], hp_i), hp_i)
         np.testing.assert_allclose(vm.critic_loss[i], m.critic_loss, rtol=1e-4)
         np.testing.assert_allclose(vm.test_success[i], m.test_success)
@@ -172,3 +174,95 @@ def test_vmapped_hparams_equal_separate_runs(tmp_path):
         np.testing.assert_allclose(vts.buffer.obs[i][: cfg.n_cycles * 2],
                                    ts.buffer.obs[: cfg.n_cycles * 2], atol=1e-4)
     assert not np.allclose(vm.critic_loss[0], vm.critic_loss[1])
+
+
+def test_metrics_columns_follow_epoch_metrics(tmp_path):
+    """metrics.csv has the historical columns first, then every other EpochMetrics field."""
+    from rdher_jax.runlog import LEADING_FIELDS
+    from rdher_jax.trainer import EpochMetrics
+
+    names = [f.name for f in dataclasses.fields(EpochMetrics)]
+    cols = train_mod.csv_fields()
+    assert cols[: len(LEADING_FIELDS)] == LEADING_FIELDS
+    assert sorted(cols) == sorted({*names, "epoch", "wall_time"})
+    m = EpochMetrics(**{n: np.float32(0.5) for n in names})
+    row = train_mod.epoch_row(3, m, 1.23456)
+    assert list(row) == list(cols) and row["epoch"] == 3 and row["wall_time"] == 1.235
+    assert train_mod.loss_fields(cols)[:3] == ("critic_loss", "actor_loss", "q_mean")
+    assert train_mod.nonfinite_losses({**row, "actor_loss": float("inf")}) == ["actor_loss"]
+
+
+def _one_line_error(p: subprocess.Popen) -> str:
+    out, err = p.communicate(timeout=300)
+    assert p.returncode == 2, (p.args, out, err)
+    assert "Traceback" not in err, err
+    lines = err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), err
+    return lines[0]
+
+
+def test_unusable_run_dir_or_resume_is_one_line_error(tmp_path):
+    """Every unusable run_dir or resume exits 2 with one stderr line, before anything is built
+    or written: no run directory is left behind."""
+    (tmp_path / "file").write_text("")
+    (tmp_path / "not-a-run").mkdir()
+    (tmp_path / "list-config").mkdir()
+    (tmp_path / "list-config" / "config.yaml").write_text("- 1\n- 2\n")
+    (tmp_path / "torn-config").mkdir()
+    (tmp_path / "torn-config" / "config.yaml").write_text("env: [\n")
+    (tmp_path / "bad-config").mkdir()
+    (tmp_path / "bad-config" / "config.yaml").write_text("epochs: -5\n")
+    cases = {
+        "run_dir=/proc/x": "cannot create run_dir /proc/x",
+        f"run_dir={tmp_path / 'file'}": "exists and is not a directory",
+        f"run_dir={tmp_path / 'file' / 'sub'}": "is not a directory",
+        "resume=/proc/x": "does not exist",
+        f"resume={tmp_path / 'missing'}": "does not exist",
+        f"resume={tmp_path / 'file'}": "is not a directory",
+        f"resume={tmp_path / 'not-a-run'}": "has no config.yaml",
+        f"resume={tmp_path / 'list-config'}": "is not a run config",
+        f"resume={tmp_path / 'torn-config'}": "cannot read",
+        f"resume={tmp_path / 'bad-config'}": "epochs must be a positive integer",
+    }
+    if os.geteuid() != 0:  # root writes anywhere
+        (tmp_path / "ro").mkdir()
+        (tmp_path / "ro-run").mkdir()
+        (tmp_path / "ro-run" / "config.yaml").write_text("env: FetchReach\n")
+        cases[f"run_dir={tmp_path / 'ro' / 'a' / 'b'}"] = "cannot create run_dir"
+        cases[f"run_dir={tmp_path / 'ro'}"] = "is not writable"
+        cases[f"resume={tmp_path / 'ro-run'}"] = "is not writable"
+        (tmp_path / "ro").chmod(0o555)
+        (tmp_path / "ro-run").chmod(0o555)
+    before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
+    procs = {arg: _cli([arg, "progress=false"]) for arg in cases}  # all at once: mostly startup
+    try:
+        for arg, fragment in cases.items():
+            assert fragment in _one_line_error(procs[arg]), arg
+    finally:
+        for name in ("ro", "ro-run"):
+            if (tmp_path / name).exists():
+                (tmp_path / name).chmod(0o755)
+    assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before
+    assert not Path("/proc/x").exists()
+
+
+def test_resume_with_damaged_checkpoint_is_one_line_error(tmp_path):
+    cfg = tiny_cfg(tmp_path, epochs=1)
+    train_mod.train(cfg, log=lambda *a: None)
+    run = Path(cfg.run_dir)
+    (run / "checkpoints" / "latest" / "1" / "state" / "_METADATA").write_text("garbage")
+    err = _one_line_error_or_noise(_cli([f"resume={run}", "epochs=2"]))
+    assert f"cannot resume {run}: its latest checkpoint is unusable" in err
+    (run / "metrics.csv").write_text("epoch,other\n")
+    err = _one_line_error_or_noise(_cli([f"resume={run}", "epochs=2"]))
+    assert "belongs to a different version" in err
+
+
+def _one_line_error_or_noise(p: subprocess.Popen) -> str:
+    """The error line of a CLI that failed after building the env (whose imports may print
+    their own warnings): exit 2, one ``error:`` line, no traceback."""
+    out, err = p.communicate(timeout=300)
+    assert p.returncode == 2 and "Traceback" not in err, err
+    lines = [ln for ln in err.splitlines() if ln.startswith("error: ")]
+    assert len(lines) == 1, err
+    return lines[0]
