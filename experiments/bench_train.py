@@ -71,11 +71,12 @@ def learner_speed(batch: int, n: int, repeats: int) -> dict:
 
     from rdher_jax import buffer as rb
     from rdher_jax.ddpg import HParams, make_ddpg
-    from rdher_jax.her import sample_her
+    from rdher_jax.relabel import sample_her
 
     obs_dim, goal_dim, act_dim, T = 25, 3, 4, 50  # FetchPush sizes
     agent = make_ddpg(obs_dim, goal_dim, act_dim)
     hp = HParams.default()
+    relabel_prob = 0.8  # baselines' k = 4
     ds = agent.init(jax.random.PRNGKey(0), hp)
     buf = rb.init(100_000, T, obs_dim, goal_dim, act_dim)
     k = jax.random.PRNGKey(1)
@@ -90,7 +91,7 @@ def learner_speed(batch: int, n: int, repeats: int) -> dict:
     def reward(a, g):
         return -(jnp.linalg.norm(a - g, axis=-1) > 0.05).astype(jnp.float32)
 
-    fixed = sample_her(k, buf, batch, hp.relabel_prob, reward)
+    fixed = sample_her(k, buf, batch, relabel_prob, reward)
 
     @jax.jit
     def updates_only(ds):
@@ -100,7 +101,7 @@ def learner_speed(batch: int, n: int, repeats: int) -> dict:
     @jax.jit
     def sample_and_update(ds, buf, key):  # the buffer is an argument, as in the trainer
         def body(s, kk):
-            return agent.update(s, sample_her(kk, buf, batch, hp.relabel_prob, reward), hp)[0], None
+            return agent.update(s, sample_her(kk, buf, batch, relabel_prob, reward), hp)[0], None
 
         return jax.lax.scan(body, ds, jax.random.split(key, n))[0]
 
