@@ -14,12 +14,14 @@ from rdher_jax import sweep as sweep_mod
 from rdher_jax import train as train_mod
 from rdher_jax.config import Config, resolve
 
-TINY = dict(env="FetchReach", n_cycles=2, n_batches=4, batch_size=32, buffer_size=2000,
-            num_envs=2, n_test_rollouts=2, hidden=32, progress=False, epochs=3,
-            checkpoint_every=2)
+# rdher: the runs differ in the DDPG hyperparameters and in the relabelling parameters.
+TINY = dict(env="FetchReach", algo="rdher", n_cycles=2, n_batches=4, batch_size=32,
+            buffer_size=2000, num_envs=2, n_test_rollouts=2, hidden=32, progress=False,
+            epochs=3, checkpoint_every=2)
 TINY_ARGS = [f"{k}={v}" for k, v in TINY.items()]
 LAMBDAS = "lambdas=[[1,1],[2,0.5]]"
 RUNS = ["lr1_lh1_s0", "lr1_lh1_s1", "lr2_lh0.5_s0", "lr2_lh0.5_s1"]
+PAIRS_SEEDS = [(1, 1, 0), (1, 1, 1), (2, 0.5, 0), (2, 0.5, 1)]
 
 
 def read_csv(path):
@@ -49,26 +51,37 @@ def assert_same_rows(a, b, exact=False):
                                            equal_nan=True, err_msg=k)
 
 
+def _popen(args, **kw):
+    return subprocess.Popen([sys.executable, "-m", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, **kw)
+
+
 @pytest.fixture(scope="module")
 def ref(tmp_path_factory):
-    """An uninterrupted 2 x 2 sweep on one device; the same sweep on three host devices runs
-    meanwhile in a subprocess (see test_sharded_sweep_equals_unsharded)."""
+    """An uninterrupted 2 x 2 sweep on one device, in this process; meanwhile the same sweep
+    on three host devices in a subprocess."""
     root = tmp_path_factory.mktemp("ref")
     env = {**os.environ, "XLA_FLAGS": os.environ.get("XLA_FLAGS", "")
            + " --xla_force_host_platform_device_count=3"}
-    sharded = subprocess.Popen(
-        [sys.executable, "-m", "rdher_jax.sweep", *TINY_ARGS, LAMBDAS, "seeds=2",
-         f"sweep_dir={root / 'sharded'}"],
-        env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    out = run_sweep(root / "sweep")
-    yield root / "sweep", out, (sharded, root / "sharded")
-    if sharded.poll() is None:
-        sharded.kill()
-        sharded.wait()
+    sharded = _popen(["rdher_jax.sweep", *TINY_ARGS, LAMBDAS, "seeds=2",
+                      f"sweep_dir={root / 'sharded'}"], env=env)
+    try:
+        out = run_sweep(root / "sweep")
+        yield {"dir": root / "sweep", "out": out, "sharded": (sharded, root / "sharded")}
+    finally:
+        if sharded.poll() is None:
+            sharded.kill()
+            sharded.wait()
+
+
+def _finished(proc):
+    out, err = proc.communicate(timeout=600)
+    assert proc.returncode == 0, (proc.args, err[-3000:])
+    return out
 
 
 def test_sweep_outputs(ref):
-    d, out, _ = ref
+    d, out = ref["dir"], ref["out"]
     assert out["runs"] == RUNS and out["diverged"] == {}
     for name in ("summary.csv", "summary.md", "summary.json", "sweep.yaml",
                  "base_config.yaml", "run_info.json"):
@@ -86,7 +99,7 @@ def test_sweep_outputs(ref):
 
 
 def test_summary_rows(ref):
-    d, *_ = ref
+    d = ref["dir"]
     rows = read_csv(d / "summary.csv")
     assert [r["run"] for r in rows] == RUNS
     assert [(float(r["lambda_r"]), float(r["lambda_h"]), int(r["seed"])) for r in rows] == [
@@ -110,26 +123,25 @@ def test_summary_rows(ref):
 
 
 def test_sweep_equals_separate_train_runs(ref, tmp_path):
-    """The vmapped sweep gives each run the metrics a separate ``train`` run gives it."""
-    d, *_ = ref
-    for run, (lr, lh, seed) in zip(RUNS, [(1, 1, 0), (1, 1, 1), (2, 0.5, 0), (2, 0.5, 1)],
-                                   strict=True):
+    """The vmapped sweep gives each run the metrics a separate ``train`` run gives it (each
+    built from its own config, so a per-run value that bypassed the hyperparameters, which the
+    sweep takes from its first run, would show here)."""
+    for run, (lr, lh, seed) in zip(RUNS, PAIRS_SEEDS, strict=True):
         cfg = resolve(Config(**{**TINY, "lambda_r": lr, "lambda_h": lh, "seed": seed,
                                 "run_dir": str(tmp_path / run)}))
         train_mod.train(cfg, log=lambda *a: None)
-        assert_same_rows(read_csv(d / run / "metrics.csv"),
+        assert_same_rows(read_csv(ref["dir"] / run / "metrics.csv"),
                          read_csv(tmp_path / run / "metrics.csv"))
 
 
 def test_sharded_sweep_equals_unsharded(ref):
     """Three host devices, each stepping its own runs (and making its own physics callbacks);
     the 4 runs are padded to 6 with copies of the first."""
-    d, _, (proc, sharded) = ref
-    out, err = proc.communicate(timeout=600)
-    assert proc.returncode == 0, err
+    proc, sharded = ref["sharded"]
+    out = _finished(proc)
     assert "shard_map over mesh ('runs',) of 3 devices, 2 runs per device, padded from 4" in out
     for run in RUNS:
-        assert_same_rows(read_csv(d / run / "metrics.csv"),
+        assert_same_rows(read_csv(ref["dir"] / run / "metrics.csv"),
                          read_csv(sharded / run / "metrics.csv"))
 
 
@@ -140,7 +152,7 @@ class Interrupted(Exception):
 def test_resume_equals_uninterrupted(ref, tmp_path, monkeypatch):
     """A sweep stopped after epoch 3's rows but before its checkpoint (the last one is after
     epoch 2) resumes from epoch 2 and ends exactly as the uninterrupted sweep."""
-    d, *_ = ref
+    d = ref["dir"]
     real = sweep_mod.is_checkpoint_epoch
 
     def stop_at_3(cfg, epoch):
@@ -237,7 +249,7 @@ def test_bad_arguments_are_one_line_errors(args, fragment, capsys, tmp_path):
 
 
 def test_bad_sweep_dirs(ref, tmp_path, capsys):
-    d, *_ = ref
+    d = ref["dir"]
     (tmp_path / "file").write_text("")
     cases = [([f"sweep_dir={tmp_path / 'file'}"], "not a directory"),
              ([f"sweep_dir={d}"], "not empty; pass resume="),
