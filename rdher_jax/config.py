@@ -294,6 +294,15 @@ def _unknown_key_msg(key: str) -> str:
     return f"unknown key {key!r}{hint}; run with --help to list the keys"
 
 
+def split_token(tok: str) -> tuple[str, str]:
+    """``"key=value"`` -> ``(key, value)``; anything else is a ConfigError."""
+    key, sep, value = tok.partition("=")
+    key = key.strip()
+    if not sep or not key:
+        raise ConfigError(f"malformed argument {tok!r}: expected key=value")
+    return key, value
+
+
 def parse_args(argv: Sequence[str], base: Config | None = None, prog: str = PROG) -> Config:
     """Apply ``key=value`` tokens onto ``base`` (default: ``Config()``) and validate.
 
@@ -306,10 +315,7 @@ def parse_args(argv: Sequence[str], base: Config | None = None, prog: str = PROG
         raise SystemExit(0)
     raw: dict[str, str] = {}
     for tok in argv:
-        key, sep, value = tok.partition("=")
-        key = key.strip()
-        if not sep or not key:
-            raise ConfigError(f"malformed argument {tok!r}: expected key=value")
+        key, value = split_token(tok)
         if key not in FIELD_NAMES:
             # Checked before OmegaConf so that dotted or hydra-style keys get the same message.
             raise ConfigError(_unknown_key_msg(key))

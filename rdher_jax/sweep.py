@@ -63,6 +63,7 @@ from .config import (
     main_guard,
     parse_args,
     resolve,
+    split_token,
     to_yaml,
     validate,
 )
@@ -219,10 +220,7 @@ def _split_args(argv: Sequence[str]) -> tuple[dict[str, str], dict[str, str]]:
     sweep_args: dict[str, str] = {}
     cfg_args: dict[str, str] = {}
     for tok in argv:
-        key, sep, value = tok.partition("=")
-        key = key.strip()
-        if not sep or not key:
-            raise ConfigError(f"malformed argument {tok!r}: expected key=value")
+        key, value = split_token(tok)
         if key in SWEEP_KEYS:
             sweep_args[key] = value
         elif key in FIELD_NAMES:
