@@ -1,0 +1,141 @@
+"""Env steps and wall clock to a test success, for a training setting over seeds.
+
+Runs ``python -m rdher_jax.train`` once per seed (one process each, so every run includes its own
+cold start and compilation) with the given ``key=value`` settings, then reads each run's
+``metrics.csv`` and records, for each threshold, the first epoch whose test success reaches it
+and the first epoch whose mean over the last ``--window`` epochs does (10 test episodes per epoch
+make single epochs noisy). Writes a table (markdown and JSON) and the curves under
+``experiments/results/``. Runs already finished in ``--runs-dir`` are read, not rerun, so a
+benchmark can be completed over several sittings (an unfinished run is resumed).
+
+    python experiments/bench_learning.py --name push-default --seeds 0 1 2 -- \
+        env=FetchPush epochs=40
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import platform
+import statistics
+import subprocess
+import sys
+from pathlib import Path
+
+THRESHOLDS = (0.5, 0.9)
+
+
+def first_hit(rows: list[dict], threshold: float, window: int) -> dict | None:
+    """The first epoch at or above ``threshold``, alone and as a trailing mean of ``window``."""
+    out: dict = {}
+    succ = [float(r["test_success"]) for r in rows]
+    for i, r in enumerate(rows):
+        if "single" not in out and succ[i] >= threshold:
+            out["single"] = {"epoch": int(r["epoch"]), "env_steps": int(r["env_steps"]),
+                             "wall_s": float(r["wall_time"])}
+        if "window" not in out and i + 1 >= window and \
+                statistics.mean(succ[i + 1 - window: i + 1]) >= threshold:
+            out["window"] = {"epoch": int(r["epoch"]), "env_steps": int(r["env_steps"]),
+                             "wall_s": float(r["wall_time"])}
+    return out or None
+
+
+def run_seed(run_dir: Path, seed: int, settings: list[str]) -> list[dict]:
+    """Train (or resume, or just read) one seed; returns its metrics rows."""
+    argv = [sys.executable, "-m", "rdher_jax.train"]
+    if (run_dir / "config.yaml").exists():
+        argv += [f"resume={run_dir}"] + [s for s in settings if s.startswith("epochs=")]
+    else:
+        argv += [*settings, f"seed={seed}", f"run_dir={run_dir}"]
+    subprocess.run(argv + ["progress=false"], check=True)
+    with open(run_dir / "metrics.csv", newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def fmt(hit: dict | None, key: str) -> str:
+    if not hit or key not in hit:
+        return "not reached"
+    h = hit[key]
+    return f"{h['env_steps']:,} steps, {h['wall_s'] / 60:.1f} min"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--name", required=True, help="name of this setting (file names)")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    ap.add_argument("--window", type=int, default=3)
+    ap.add_argument("--runs-dir", default="runs/bench_learning")
+    ap.add_argument("--out", default="experiments/results/bench_learning")
+    ap.add_argument("settings", nargs="*", help="key=value training settings")
+    args = ap.parse_args()
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    results = {}
+    for seed in args.seeds:
+        run_dir = Path(args.runs_dir) / f"{args.name}-s{seed}"
+        rows = run_seed(run_dir, seed, args.settings)
+        (out / f"{args.name}-s{seed}.csv").write_bytes((run_dir / "metrics.csv").read_bytes())
+        results[seed] = {
+            "epochs": len(rows),
+            "env_steps": int(rows[-1]["env_steps"]) if rows else 0,
+            "wall_s": float(rows[-1]["wall_time"]) if rows else 0.0,
+            "best": max((float(r["test_success"]) for r in rows), default=0.0),
+            "hits": {str(t): first_hit(rows, t, args.window) for t in THRESHOLDS},
+            "curve": [(int(r["env_steps"]), float(r["wall_time"]), float(r["test_success"]))
+                      for r in rows],
+        }
+
+    lines = [
+        f"# Learning speed: {args.name}",
+        "",
+        f"`python experiments/bench_learning.py --name {args.name} --seeds "
+        f"{' '.join(map(str, args.seeds))} -- {' '.join(args.settings)}` on "
+        f"{platform.machine()} ({platform.processor() or 'CPU'}); wall clock from the start "
+        "of training (the first epoch's compilation included, imports and env build not). "
+        f"'mean of {args.window}': the first epoch whose trailing mean of {args.window} epochs "
+        "reaches the threshold.",
+        "",
+        "| seed | epochs | env steps | minutes | best | "
+        + " | ".join(f"to {t} | to {t}, mean of {args.window}" for t in THRESHOLDS) + " |",
+        "|---" * (5 + 2 * len(THRESHOLDS)) + "|",
+    ]
+    for seed, r in results.items():
+        cells = []
+        for t in THRESHOLDS:
+            cells += [fmt(r["hits"][str(t)], "single"), fmt(r["hits"][str(t)], "window")]
+        lines.append(f"| {seed} | {r['epochs']} | {r['env_steps']:,} | {r['wall_s'] / 60:.1f} | "
+                     f"{r['best']:.2f} | " + " | ".join(cells) + " |")
+    text = "\n".join(lines) + "\n"
+    (out / f"{args.name}.md").write_text(text)
+    (out / f"{args.name}.json").write_text(json.dumps(
+        {"settings": args.settings, "seeds": args.seeds, "results": results}, indent=1))
+    print(text)
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
+    for seed, r in results.items():
+        steps, wall, succ = zip(*r["curve"], strict=True) if r["curve"] else ((), (), ())
+        axes[0].plot(steps, succ, label=f"seed {seed}")
+        axes[1].plot([w / 60 for w in wall], succ, label=f"seed {seed}")
+    axes[0].set_xlabel("env steps")
+    axes[1].set_xlabel("minutes (wall clock)")
+    for ax in axes:
+        ax.set_ylabel("test success")
+        ax.set_ylim(-0.02, 1.02)
+        ax.grid(alpha=0.3)
+        for t in THRESHOLDS:
+            ax.axhline(t, color="grey", lw=0.6, ls="--")
+    axes[0].legend()
+    fig.suptitle(args.name)
+    fig.tight_layout()
+    fig.savefig(out / f"{args.name}.png", dpi=100)
+
+
+if __name__ == "__main__":
+    main()
