@@ -41,8 +41,13 @@ def first_hit(rows: list[dict], threshold: float, window: int) -> dict | None:
     return out or None
 
 
-def run_seed(run_dir: Path, seed: int, settings: list[str]) -> list[dict]:
+def run_seed(run_dir: Path, seed: int, settings: list[str], train: bool = True) -> list[dict]:
     """Train (or resume, or just read) one seed; returns its metrics rows."""
+    if not train:
+        if not (run_dir / "metrics.csv").exists():
+            return []
+        with open(run_dir / "metrics.csv", newline="") as f:
+            return list(csv.DictReader(f))
     argv = [sys.executable, "-m", "rdher_jax.train"]
     if (run_dir / "config.yaml").exists():
         argv += [f"resume={run_dir}"] + [s for s in settings if s.startswith("epochs=")]
@@ -67,6 +72,8 @@ def main() -> None:
     ap.add_argument("--window", type=int, default=3)
     ap.add_argument("--runs-dir", default="runs/bench_learning")
     ap.add_argument("--out", default="experiments/results/bench_learning")
+    ap.add_argument("--report-only", action="store_true",
+                    help="tabulate the runs as they stand (e.g. stopped early), train nothing")
     ap.add_argument("settings", nargs="*", help="key=value training settings")
     args = ap.parse_args()
 
@@ -75,7 +82,9 @@ def main() -> None:
     results = {}
     for seed in args.seeds:
         run_dir = Path(args.runs_dir) / f"{args.name}-s{seed}"
-        rows = run_seed(run_dir, seed, args.settings)
+        rows = run_seed(run_dir, seed, args.settings, train=not args.report_only)
+        if not rows:
+            continue
         (out / f"{args.name}-s{seed}.csv").write_bytes((run_dir / "metrics.csv").read_bytes())
         results[seed] = {
             "epochs": len(rows),
