@@ -22,7 +22,7 @@ Params = Any
 
 
 class Batch(Protocol):
-    """Fields of a training batch (`rdher_jax.her.Transition` provides them)."""
+    """Fields of a training batch (`rdher_jax.relabel.Transition` provides them)."""
 
     obs: jax.Array  # (B, obs_dim)
     goal: jax.Array  # (B, goal_dim)
