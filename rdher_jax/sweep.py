@@ -365,10 +365,15 @@ class SweepProgram:
         return jax.tree.map(lambda x: jnp.concatenate([x, jnp.repeat(x[:1], k, axis=0)]), tree)
 
     def unpad(self, tree: Any) -> Any:
-        """The real runs of a padded tree."""
-        if self.n_padded == self.n_runs:
-            return tree
-        return jax.tree.map(lambda x: x[: self.n_runs], tree)
+        """The real runs of a padded tree, as host arrays.
+
+        On the host on purpose: slicing a run-sharded array on device compiles a program with
+        a cross-device collective, and XLA:CPU runs host devices on one thread pool, so with
+        more host devices than pool threads two devices can block in the collective's
+        rendezvous while the third never gets a thread (seen as a 40 s rendezvous abort).
+        Nothing the sweep runs between epochs may need a collective.
+        """
+        return jax.tree.map(lambda x: np.asarray(x)[: self.n_runs], jax.device_get(tree))
 
     def put(self, tree: Any) -> Any:
         """Pad and place ``tree`` as the program's inputs are placed."""
@@ -588,6 +593,15 @@ def sweep(spec: SweepSpec, argv: Sequence[str] | None = None, log=print,
         ts, m = program.epoch(ts, hps)
         m = jax.device_get(m)
         dt = time.perf_counter() - t0
+        host: dict[str, Any] = {}
+
+        def policies(ts=ts, host=host):
+            # Every run's learner state, fetched once and only when some run has a new best;
+            # sliced per run on the host (see SweepProgram.unpad).
+            if "ddpg" not in host:
+                host["ddpg"] = jax.device_get(ts.ddpg)
+            return host["ddpg"]
+
         wall = time.perf_counter() - t_start
         tests = []
         for i, (o, name) in enumerate(zip(outs, names, strict=True)):
@@ -600,7 +614,7 @@ def sweep(spec: SweepSpec, argv: Sequence[str] | None = None, log=print,
                 log(f"{name}: {', '.join(bad)} became non-finite in epoch {epoch + 1}; its "
                     f"outputs stop at epoch {epoch}, the other runs go on")
                 continue
-            o.record(row, lambda i=i, ts=ts: _row_of(ts.ddpg, i))
+            o.record(row, lambda i=i: _row_of(policies(), i))
             tests.append(row["test_success"])
         if len(diverged) == len(runs):
             raise TrainingDiverged(
