@@ -196,9 +196,9 @@ def sample_scan(rl):
 
 
 def tree_bytes(tree) -> int:
-    import jax
+    from rdher_jax.sweep import tree_bytes as sweep_tree_bytes  # one definition
 
-    return sum(x.nbytes for x in jax.tree.leaves(tree))
+    return sweep_tree_bytes(tree)
 
 
 class Bench:
