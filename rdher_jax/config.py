@@ -58,6 +58,31 @@ RESUMABLE_KEYS: frozenset[str] = frozenset(
 PROG = "python -m rdher_jax.train"
 
 
+@dataclass(frozen=True)
+class Preset:
+    """A named set of key values; explicit ``key=value`` arguments override them."""
+
+    doc: str
+    values: Mapping[str, Any]
+
+
+# Presets change the learner away from the paper-faithful defaults, which stay as the paper ran
+# them. Their values are measured choices: experiments/bench_learning.py and the README say what
+# each one bought.
+PRESETS: dict[str, Preset] = {
+    "fast": Preset(
+        "learn FetchPush within an hour on a 2-core CPU: one episode and 40 gradient steps per "
+        "cycle (0.8 steps per env step), target networks updated every 2nd step by 0.99",
+        {
+            "num_envs": 1,
+            "n_batches": 40,
+            "target_every": 2,
+            "polyak": 0.99,
+        },
+    ),
+}
+
+
 class ConfigError(ValueError):
     """A user error in the configuration; its message is always a single line."""
 
@@ -74,6 +99,10 @@ def _f(default: Any, doc: str) -> Any:
 class Config:
     """Hyper-parameters and run options of one training run."""
 
+    preset: str | None = _f(
+        None, "named set of values applied before the other keys, which override it: "
+        + ", ".join(PRESETS) + " (listed below)"
+    )
     env: str = _f("FetchReach", "task: one of " + ", ".join(ENV_NAMES))
     algo: str = _f(
         "her",
@@ -103,6 +132,19 @@ class Config:
     action_l2: float = _f(1.0, "weight of the squared-action penalty in the actor loss")
     noise_eps: float = _f(0.2, "std of Gaussian exploration noise, as a fraction of max action")
     random_eps: float = _f(0.3, "probability of a uniformly random exploratory action")
+    target_every: int = _f(
+        0, "gradient steps between target-network updates (each by polyak); 0: one update per "
+        "cycle after its n_batches steps (baselines)"
+    )
+    target_noise: float = _f(
+        0.0, "TD3 target smoothing: std of Gaussian noise on the target action, as a fraction of "
+        "max action; 0: none (baselines)"
+    )
+    noise_clip: float = _f(0.5, "target smoothing noise is clipped to +-noise_clip x max action")
+    policy_delay: int = _f(
+        1, "the actor is updated every policy_delay-th gradient step (TD3); 1: every step"
+    )
+    layer_norm: bool = _f(False, "LayerNorm in the critic's hidden layers")
     replay_k: int = _f(4, "HER ratio: goals are relabelled with probability 1 - 1/(1 + k)")
     lambda_r: float | None = _f(
         None, "reward weight on real transitions (>= 0); null: the paper's per-task value for "
@@ -175,6 +217,13 @@ def help_text(prog: str = PROG) -> str:
         lines.extend(
             textwrap.wrap(f.metadata["help"], 96, initial_indent=" " * 6, subsequent_indent=" " * 6)
         )
+    lines += ["", "Presets (preset=<name>; keys given explicitly override a preset's values):", ""]
+    for name, preset in PRESETS.items():
+        values = " ".join(f"{k}={_fmt_value(v)}" for k, v in preset.values.items())
+        lines.append(f"  {name}: {values}")
+        lines.extend(
+            textwrap.wrap(preset.doc, 96, initial_indent=" " * 6, subsequent_indent=" " * 6)
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -196,6 +245,8 @@ def validate(cfg: Config) -> Config:
     _one_of("algo", cfg.algo, ALGO_NAMES)
     _one_of("backend", cfg.backend, BACKENDS)
     _one_of("scene", cfg.scene, SCENES)
+    if cfg.preset is not None:
+        _one_of("preset", cfg.preset, tuple(PRESETS))
     _check(0 <= cfg.seed < 2**32, f"seed must be in [0, 2**32), got {cfg.seed}")
     positive = (
         "epochs",
@@ -212,11 +263,13 @@ def validate(cfg: Config) -> Config:
         "dher_partners",
         "cher_candidates",
         "cher_sample",
+        "policy_delay",
     )
     for name in positive:
         v = getattr(cfg, name)
         _check(v is None or v >= 1, f"{name} must be a positive integer, got {v}")
     _check(cfg.replay_k >= 0, f"replay_k must be >= 0, got {cfg.replay_k}")
+    _check(cfg.target_every >= 0, f"target_every must be >= 0, got {cfg.target_every}")
     _check(
         cfg.batch_size <= cfg.buffer_size,
         f"batch_size ({cfg.batch_size}) must not exceed buffer_size ({cfg.buffer_size})",
@@ -234,6 +287,8 @@ def validate(cfg: Config) -> Config:
         "dher_fraction",
         "dher_tol",
         "cher_growth",
+        "target_noise",
+        "noise_clip",
     )
     for name in floats:
         v = getattr(cfg, name)
@@ -243,7 +298,7 @@ def validate(cfg: Config) -> Config:
     for name in ("polyak", "random_eps"):
         v = getattr(cfg, name)
         _check(0.0 <= v <= 1.0, f"{name} must be in [0, 1], got {v}")
-    for name in ("action_l2", "noise_eps", "lambda_r", "lambda_h"):
+    for name in ("action_l2", "noise_eps", "lambda_r", "lambda_h", "target_noise", "noise_clip"):
         v = getattr(cfg, name)
         _check(v is None or v >= 0, f"{name} must be >= 0, got {v}")
     _check(0.0 <= cfg.dher_fraction <= 1.0,
@@ -303,6 +358,15 @@ def split_token(tok: str) -> tuple[str, str]:
     return key, value
 
 
+def preset_tokens(name: str) -> dict[str, str]:
+    """The ``key -> value`` text of preset ``name``; ``null`` gives none."""
+    name = name.strip()
+    if name in ("null", "~", ""):
+        return {}
+    _one_of("preset", name, tuple(PRESETS))
+    return {k: _fmt_value(v) for k, v in PRESETS[name].values.items()}
+
+
 def parse_args(argv: Sequence[str], base: Config | None = None, prog: str = PROG) -> Config:
     """Apply ``key=value`` tokens onto ``base`` (default: ``Config()``) and validate.
 
@@ -320,6 +384,8 @@ def parse_args(argv: Sequence[str], base: Config | None = None, prog: str = PROG
             # Checked before OmegaConf so that dotted or hydra-style keys get the same message.
             raise ConfigError(_unknown_key_msg(key))
         raw[key] = value
+    if "preset" in raw:
+        raw = {**preset_tokens(raw["preset"]), **raw}
     try:
         overrides = OmegaConf.from_dotlist([f"{k}={v}" for k, v in raw.items()])
     except OmegaConfBaseException as e:

@@ -104,11 +104,11 @@ class DDPG(NamedTuple):
     act: Callable[[DDPGState, jax.Array, jax.Array], jax.Array]
     explore: Callable[[jax.Array, DDPGState, jax.Array, jax.Array, HParams], jax.Array]
     critic_target: Callable[[jax.Array, jax.Array, jax.Array, HParams], jax.Array]
-    critic_loss: Callable[[Params, DDPGState, Batch, HParams], tuple[jax.Array, jax.Array]]
+    critic_loss: Callable[..., tuple[jax.Array, jax.Array]]
     actor_loss: Callable[[Params, DDPGState, Batch, HParams], jax.Array]
-    update: Callable[[DDPGState, Batch, HParams], tuple[DDPGState, dict[str, jax.Array]]]
+    update: Callable[..., tuple[DDPGState, dict[str, jax.Array]]]
     update_many: Callable[[DDPGState, Batch, HParams], tuple[DDPGState, dict[str, jax.Array]]]
-    target_update: Callable[[DDPGState, HParams], DDPGState]
+    target_update: Callable[..., DDPGState]
 
 
 def critic_target(
@@ -162,6 +162,10 @@ def make_ddpg(
     clip_obs: float = 200.0,
     norm_eps: float = 0.01,
     norm_clip: float = 5.0,
+    target_noise: float = 0.0,
+    noise_clip: float = 0.5,
+    policy_delay: int = 1,
+    layer_norm: bool = False,
 ) -> DDPG:
     """Builds the DDPG functions for fixed dimensions and architecture.
 
@@ -174,12 +178,20 @@ def make_ddpg(
         clip_obs: raw observations and goals are clipped to +-clip_obs before anything else.
         norm_eps: minimum normaliser std.
         norm_clip: normalised inputs are clipped to +-norm_clip.
+        target_noise: std (fraction of max_u) of Gaussian noise on the target policy's action,
+            TD3's target smoothing; 0 (baselines) is none.
+        noise_clip: that noise is clipped to +-noise_clip * max_u.
+        policy_delay: the actor is updated on every policy_delay-th gradient step (TD3's
+            delayed policy update); 1 (baselines) updates it on every step.
+        layer_norm: LayerNorm in the critic's hidden layers.
 
     Returns:
         A DDPG of pure, jittable functions.
     """
     actor = Actor(act_dim=act_dim, hidden=tuple(hidden), max_u=max_u)
-    critic = Critic(hidden=tuple(hidden), max_u=max_u)
+    critic = Critic(hidden=tuple(hidden), max_u=max_u, layer_norm=layer_norm)
+    if policy_delay < 1:
+        raise ValueError(f"policy_delay must be >= 1, got {policy_delay}")
 
     def init(key: jax.Array, hparams: HParams) -> DDPGState:
         """Fresh networks (targets equal to online), Adam states and empty normalisers."""
@@ -245,12 +257,25 @@ def make_ddpg(
         return jnp.where(coin[..., None], uniform, action)
 
     def critic_loss(
-        critic_params: Params, state: DDPGState, batch: Batch, hparams: HParams
+        critic_params: Params,
+        state: DDPGState,
+        batch: Batch,
+        hparams: HParams,
+        key: jax.Array | None = None,
     ) -> tuple[jax.Array, jax.Array]:
-        """Returns (mean squared TD error, mean Q(o, g, a)) for the given critic parameters."""
+        """Returns (mean squared TD error, mean Q(o, g, a)) for the given critic parameters.
+
+        ``key`` draws the target-smoothing noise; it is needed only when target_noise > 0.
+        """
         obs, goal = normalise(state, batch.obs, batch.goal)
         next_obs, next_goal = normalise(state, batch.next_obs, batch.next_goal)
         next_action = actor.apply(state.target_actor_params, next_obs, next_goal)
+        if target_noise > 0.0:
+            if key is None:
+                raise ValueError("target_noise > 0 needs a PRNG key in critic_loss/update")
+            eps = target_noise * max_u * jax.random.normal(key, next_action.shape)
+            eps = jnp.clip(eps, -noise_clip * max_u, noise_clip * max_u)
+            next_action = jnp.clip(next_action + eps, -max_u, max_u)
         q_next = critic.apply(state.target_critic_params, next_obs, next_goal, next_action)
         y = critic_target(batch.reward, q_next, batch.hindsight, hparams)
         q = critic.apply(critic_params, obs, goal, batch.action)
@@ -266,31 +291,53 @@ def make_ddpg(
         return -jnp.mean(q_pi) + hparams.action_l2 * jnp.mean(jnp.square(pi / max_u))
 
     def update(
-        state: DDPGState, batch: Batch, hparams: HParams
+        state: DDPGState,
+        batch: Batch,
+        hparams: HParams,
+        key: jax.Array | None = None,
+        step: jax.Array | int = 0,
     ) -> tuple[DDPGState, dict[str, jax.Array]]:
-        """One gradient step on actor and critic (targets untouched).
+        """One gradient step on the critic and (every policy_delay-th step) the actor.
 
-        Both gradients come from the pre-update parameters, as in baselines, where one session
-        run computes them before either Adam step is applied.
+        Targets are untouched. Both gradients come from the pre-update parameters, as in
+        baselines, where one session run computes them before either Adam step is applied.
 
         Args:
             state: learner state.
             batch: transitions with (B, ...) fields.
             hparams: supplies learning rates and loss weights.
+            key: PRNG key for target smoothing (only used when target_noise > 0).
+            step: gradient-step counter; the actor steps when step % policy_delay == 0.
 
         Returns:
             (new state, metrics dict with critic_loss, actor_loss, q_mean).
         """
         (c_loss, q_mean), c_grads = jax.value_and_grad(critic_loss, has_aux=True)(
-            state.critic_params, state, batch, hparams
+            state.critic_params, state, batch, hparams, key
         )
-        a_loss, a_grads = jax.value_and_grad(actor_loss)(state.actor_params, state, batch, hparams)
         critic_params, critic_opt_state = _adam_step(
             state.critic_params, c_grads, state.critic_opt_state, hparams.critic_lr
         )
-        actor_params, actor_opt_state = _adam_step(
-            state.actor_params, a_grads, state.actor_opt_state, hparams.actor_lr
-        )
+
+        def actor_step(_):
+            a_loss, a_grads = jax.value_and_grad(actor_loss)(
+                state.actor_params, state, batch, hparams
+            )
+            params, opt_state = _adam_step(
+                state.actor_params, a_grads, state.actor_opt_state, hparams.actor_lr
+            )
+            return params, opt_state, a_loss
+
+        if policy_delay == 1:
+            actor_params, actor_opt_state, a_loss = actor_step(None)
+        else:
+            # lax.cond runs one branch, so the skipped actor steps cost nothing.
+            actor_params, actor_opt_state, a_loss = jax.lax.cond(
+                jnp.asarray(step) % policy_delay == 0,
+                actor_step,
+                lambda _: (state.actor_params, state.actor_opt_state, jnp.float32(jnp.nan)),
+                None,
+            )
         state = state.replace(
             actor_params=actor_params,
             critic_params=critic_params,
@@ -314,9 +361,14 @@ def make_ddpg(
         """
         return jax.lax.scan(lambda s, b: update(s, b, hparams), state, batches)
 
-    def target_update(state: DDPGState, hparams: HParams) -> DDPGState:
-        """Polyak averaging: target <- polyak * target + (1 - polyak) * online."""
-        p = hparams.polyak
+    def target_update(
+        state: DDPGState, hparams: HParams, do: jax.Array | bool = True
+    ) -> DDPGState:
+        """Polyak averaging: target <- polyak * target + (1 - polyak) * online.
+
+        ``do`` (a traced bool is fine) False leaves the targets as they are.
+        """
+        p = jnp.where(do, hparams.polyak, 1.0)
 
         def mix(target: Params, online: Params) -> Params:
             return jax.tree.map(lambda t, o: p * t + (1.0 - p) * o, target, online)

@@ -23,12 +23,16 @@ class MLP(nn.Module):
 
     hidden: Sequence[int]
     out_dim: int
+    layer_norm: bool = False
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
         """Args: x (..., in_dim). Returns: (..., out_dim)."""
         for i, width in enumerate(self.hidden):
-            x = nn.relu(nn.Dense(width, kernel_init=_KERNEL_INIT, name=f"hidden_{i}")(x))
+            x = nn.Dense(width, kernel_init=_KERNEL_INIT, name=f"hidden_{i}")(x)
+            if self.layer_norm:
+                x = nn.LayerNorm(name=f"norm_{i}")(x)
+            x = nn.relu(x)
         return nn.Dense(self.out_dim, kernel_init=_KERNEL_INIT, name="out")(x)
 
 
@@ -66,10 +70,12 @@ class Critic(nn.Module):
     Attributes:
         hidden: hidden layer widths.
         max_u: action bound (actions enter the network rescaled to [-1, 1]).
+        layer_norm: LayerNorm after every hidden Dense layer (off in baselines).
     """
 
     hidden: Sequence[int] = (256, 256, 256)
     max_u: float = 1.0
+    layer_norm: bool = False
 
     @nn.compact
     def __call__(self, obs: jax.Array, goal: jax.Array, action: jax.Array) -> jax.Array:
@@ -84,4 +90,4 @@ class Critic(nn.Module):
             Q values, (...,).
         """
         x = jnp.concatenate([obs, goal, action / self.max_u], axis=-1)
-        return MLP(self.hidden, 1, name="mlp")(x)[..., 0]
+        return MLP(self.hidden, 1, self.layer_norm, name="mlp")(x)[..., 0]

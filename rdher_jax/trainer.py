@@ -100,7 +100,11 @@ def make_trainer(cfg, env) -> Trainer:
         raise ValueError(f"unknown algo {cfg.algo!r}; valid: {', '.join(ALGO_NAMES)}")
     T = env.episode_length
     obs_dim, goal_dim, act_dim = env.obs_size, env.goal_size, env.action_size
-    agent = make_ddpg(obs_dim, goal_dim, act_dim, hidden=(cfg.hidden,) * cfg.layers)
+    agent = make_ddpg(
+        obs_dim, goal_dim, act_dim, hidden=(cfg.hidden,) * cfg.layers,
+        target_noise=cfg.target_noise, noise_clip=cfg.noise_clip,
+        policy_delay=cfg.policy_delay, layer_norm=cfg.layer_norm,
+    )
     n_envs, n_test = cfg.num_envs, cfg.n_test_rollouts
     v_reset, v_step = jax.vmap(env.reset), jax.vmap(env.step)
     capacity_episodes = rb.init(cfg.buffer_size, T, 1, 1, 1).capacity_episodes
@@ -167,21 +171,26 @@ def make_trainer(cfg, env) -> Trainer:
         def update(carry, x):
             ds, rs = carry
             k, i = x
-            rs, batch = relabeller.sample(k, rs, buf, hp.relabel, step0 + i)
-            ds, m = agent.update(ds, batch, hp.ddpg)
+            k_sample, k_update = jax.random.split(k)
+            rs, batch = relabeller.sample(k_sample, rs, buf, hp.relabel, step0 + i)
+            ds, m = agent.update(ds, batch, hp.ddpg, k_update, ts.updates + i)
+            if cfg.target_every:
+                ds = agent.target_update(ds, hp.ddpg, (ts.updates + i + 1) % cfg.target_every == 0)
             m["frac_her"] = jnp.mean(batch.source == relabel.HER)
             m["frac_dher"] = jnp.mean(batch.source == relabel.DHER)
             return (ds, rs), m
 
         xs = (jax.random.split(k_upd, cfg.n_batches), jnp.arange(cfg.n_batches, dtype=jnp.int32))
         (ds, rs), m = jax.lax.scan(update, (ds, rs), xs)
-        ds = agent.target_update(ds, hp.ddpg)
+        if not cfg.target_every:
+            ds = agent.target_update(ds, hp.ddpg)
         ts = ts.replace(
             ddpg=ds, buffer=buf, relabel=rs, key=key,
             env_steps=ts.env_steps + n_envs * T,
             updates=ts.updates + cfg.n_batches,
         )
-        metrics = {k: v.mean() for k, v in m.items()}
+        # nanmean: with policy_delay > 1 the skipped actor steps report NaN actor losses.
+        metrics = {k: jnp.nanmean(v) for k, v in m.items()}
         metrics["train_success"] = success.mean()
         metrics["bias"] = bias(k_bias, ts, ds, hp)
         return ts, metrics

@@ -244,3 +244,39 @@ def test_reward_weights_default_per_algo_and_task(env, algo, want) -> None:
 def test_relabel_options_are_checked(arg, msg) -> None:
     with pytest.raises(ConfigError, match=re.escape(msg)):
         parse_args([arg])
+
+
+def test_presets_resolve_to_their_documented_values() -> None:
+    from rdher_jax.config import PRESETS
+
+    for name, preset in PRESETS.items():
+        cfg = parse_args([f"preset={name}", "env=FetchPush"])
+        assert cfg.preset == name and cfg.env == "FetchPush"
+        for key, value in preset.values.items():
+            assert getattr(cfg, key) == value, key
+        # --help lists every value of every preset.
+        line = next(ln for ln in help_text().splitlines() if ln.startswith(f"  {name}: "))
+        for key, value in preset.values.items():
+            assert f"{key}={str(value).lower() if isinstance(value, bool) else value}" in line
+    fast = PRESETS["fast"].values
+    assert parse_args(["preset=fast"]).n_batches == fast["n_batches"]
+    # Explicit keys win, before or after the preset.
+    for argv in (["preset=fast", "n_batches=7"], ["n_batches=7", "preset=fast"]):
+        cfg = parse_args(argv)
+        assert cfg.n_batches == 7 and cfg.target_every == fast["target_every"]
+    # No preset: the paper-faithful defaults.
+    assert parse_args([]).preset is None and parse_args([]).target_every == 0
+    with pytest.raises(ConfigError, match="unknown preset 'fsat' \\(did you mean fast\\?\\)"):
+        parse_args(["preset=fsat"])
+    # A preset survives the YAML round trip that resume relies on.
+    cfg = resolve(parse_args(["preset=fast", "env=FetchPush"]), now=datetime.datetime(2026, 1, 1))
+    assert from_yaml_text(to_yaml(cfg)) == cfg
+
+
+def from_yaml_text(text: str) -> Config:
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "config.yaml"
+        p.write_text(text)
+        return from_yaml(p)

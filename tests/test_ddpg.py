@@ -352,3 +352,77 @@ def test_vmap_over_hparams_matches_separate_runs():
         lambda x: np.abs(np.asarray(x)[0] - np.asarray(x)[1]).max(), v_state.actor_params
     )
     assert max(jax.tree.leaves(diff)) > 1e-4
+
+
+# The optional learner changes (all off by default): TD3's target smoothing and delayed actor,
+# target updates inside the scan, and a LayerNorm critic.
+D_TD3 = make_ddpg(
+    OBS, GOAL, ACT, hidden=(8, 8), max_u=MAX_U, clip_obs=CLIP_OBS, norm_eps=NORM_EPS,
+    norm_clip=NORM_CLIP, target_noise=0.3, noise_clip=0.2, policy_delay=2,
+)
+
+
+def test_policy_delay_skips_actor_steps_and_nothing_else():
+    h = HParams.default()
+    state0 = _state(h, _batch(4))
+    batch = _batch(5)
+    key = jax.random.key(3)
+    upd = jax.jit(D_TD3.update)
+    on, m_on = upd(state0, batch, h, key, 0)
+    off, m_off = upd(state0, batch, h, key, 1)
+    # Same critic step either way; the actor moves only on steps divisible by policy_delay.
+    _assert_trees_close(on.critic_params, off.critic_params, 0, 0)
+    _assert_trees_close(off.actor_params, state0.actor_params, 0, 0)
+    _assert_trees_close(off.actor_opt_state, state0.actor_opt_state, 0, 0)
+    _assert_trees_close(on.actor_params, update(state0, batch, h)[0].actor_params)
+    assert np.isnan(float(m_off["actor_loss"])) and np.isfinite(float(m_on["actor_loss"]))
+
+
+def test_target_smoothing_noise_is_clipped_and_keyed():
+    h = HParams.default()
+    state = _state(h, _batch(4))
+    batch = _batch(6)
+    loss = jax.jit(lambda s, b, k: D_TD3.critic_loss(s.critic_params, s, b, h, k)[0])
+    k1, k2 = jax.random.key(1), jax.random.key(2)
+    plain = float(D.critic_loss(state.critic_params, state, batch, h)[0])
+    a, a_again, b = float(loss(state, batch, k1)), float(loss(state, batch, k1)), float(
+        loss(state, batch, k2))
+    assert a == a_again and a != b and a != plain
+    # Reference: the smoothed target action in numpy, noise drawn as the learner draws it.
+    obs, goal = normalise(state, batch.next_obs, batch.next_goal)
+    pi = _np_actor(state.target_actor_params, np.asarray(obs), np.asarray(goal), MAX_U)
+    eps = 0.3 * MAX_U * np.asarray(jax.random.normal(k1, pi.shape))
+    assert np.abs(eps).max() > 0.2 * MAX_U  # the clip below is exercised
+    a_next = np.clip(pi + np.clip(eps, -0.2 * MAX_U, 0.2 * MAX_U), -MAX_U, MAX_U)
+    q_next = _np_critic(state.target_critic_params, np.asarray(obs), np.asarray(goal), a_next,
+                        MAX_U)
+    y = np.asarray(critic_target(batch.reward, jnp.asarray(q_next, jnp.float32), batch.hindsight,
+                                 h))
+    o, g = normalise(state, batch.obs, batch.goal)
+    q = _np_critic(state.critic_params, np.asarray(o), np.asarray(g), np.asarray(batch.action),
+                   MAX_U)
+    assert a == pytest.approx(np.mean((q - y) ** 2), rel=1e-4)
+    with pytest.raises(ValueError, match="PRNG key"):
+        D_TD3.critic_loss(state.critic_params, state, batch, h)
+
+
+def test_target_update_can_be_skipped():
+    h = HParams.default(polyak=0.9)
+    state = _state(h, _batch(4))
+    kept = target_update(state, h, jnp.asarray(False))
+    _assert_trees_close(kept.target_critic_params, state.target_critic_params, 0, 0)
+    _assert_trees_close(kept.target_actor_params, state.target_actor_params, 0, 0)
+    _assert_trees_close(target_update(state, h, jnp.asarray(True)), target_update(state, h), 0, 0)
+
+
+def test_layer_norm_critic():
+    d = make_ddpg(OBS, GOAL, ACT, hidden=(8, 8), layer_norm=True)
+    s = d.init(jax.random.key(0), HParams.default())
+    assert {"norm_0", "norm_1"} <= set(s.critic_params["params"]["mlp"])
+    assert not any(k.startswith("norm") for k in s.actor_params["params"]["mlp"])
+    # Scaling a hidden layer's weights and bias changes nothing after a LayerNorm.
+    scaled = jax.tree_util.tree_map_with_path(
+        lambda p, x: x * 3.0 if "hidden_0" in jax.tree_util.keystr(p) else x, s.critic_params)
+    o, g, a = jnp.ones((2, OBS)), jnp.ones((2, GOAL)), jnp.ones((2, ACT))
+    np.testing.assert_allclose(d.critic.apply(scaled, o, g, a), d.critic.apply(s.critic_params,
+                               o, g, a), rtol=1e-4, atol=1e-5)

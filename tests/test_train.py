@@ -266,3 +266,28 @@ def _one_line_error_or_noise(p: subprocess.Popen) -> str:
     lines = [ln for ln in err.splitlines() if ln.startswith("error: ")]
     assert len(lines) == 1, err
     return lines[0]
+
+
+def test_target_every_moves_targets_inside_the_cycle(tmp_path):
+    """target_every=k updates the targets after every k-th gradient step (counted over the
+    run), instead of once after the cycle; polyak=0 makes 'updated' mean 'equal to online'."""
+    def one_cycle(**kw):
+        cfg = tiny_cfg(tmp_path, epochs=1, polyak=0.0, n_batches=4, **kw)
+        _, trainer = train_mod.build(cfg)
+        ts0 = jax.jit(trainer.init)(jax.random.PRNGKey(0), trainer.hparams)
+        ts, _ = jax.jit(trainer.cycle)(ts0, trainer.hparams)
+        return ts0.ddpg, ts.ddpg
+
+    def same(a, b):
+        return all(np.array_equal(x, y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
+
+    start, end = one_cycle()  # baselines: one update after the cycle
+    assert same(end.target_critic_params, end.critic_params)
+    start, end = one_cycle(target_every=4)  # after the 4th step, which is the cycle's last
+    assert same(end.target_critic_params, end.critic_params)
+    start, end = one_cycle(target_every=5)  # not yet: targets are still the initial networks
+    assert same(end.target_critic_params, start.critic_params)
+    assert not same(end.critic_params, start.critic_params)
+    start, end = one_cycle(target_every=3)  # after the 3rd step: neither start nor end
+    assert not same(end.target_critic_params, start.critic_params)
+    assert not same(end.target_critic_params, end.critic_params)
