@@ -10,4 +10,12 @@ def make_env(name: str, backend: str | None = None, **kwargs):
     return _make_env(name, backend, **kwargs)
 
 
-__all__ = ["make_env", "__version__"]
+def make_vector_env(name: str, num_envs: int, backend: str | None = None,
+                    seed: int | None = None, **kwargs):
+    """A Fetch task as a ``gymnasium.vector.VectorEnv``; see ``rdher_jax.vector``."""
+    from .vector import make_vector_env as _make_vector_env
+
+    return _make_vector_env(name, num_envs, backend, seed=seed, **kwargs)
+
+
+__all__ = ["make_env", "make_vector_env", "__version__"]
