@@ -145,6 +145,10 @@ class Config:
         1, "the actor is updated every policy_delay-th gradient step (TD3); 1: every step"
     )
     layer_norm: bool = _f(False, "LayerNorm in the critic's hidden layers")
+    terminal_on_success: bool = _f(
+        False, "a transition that reaches its goal (reward 0) does not bootstrap: its target is "
+        "0 (Fetch episodes end by time limit only, so this is off in the paper's setting)"
+    )
     replay_k: int = _f(4, "HER ratio: goals are relabelled with probability 1 - 1/(1 + k)")
     lambda_r: float | None = _f(
         None, "reward weight on real transitions (>= 0); null: the paper's per-task value for "

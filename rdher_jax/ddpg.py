@@ -112,7 +112,11 @@ class DDPG(NamedTuple):
 
 
 def critic_target(
-    reward: jax.Array, q_next: jax.Array, hindsight: jax.Array, hparams: HParams
+    reward: jax.Array,
+    q_next: jax.Array,
+    hindsight: jax.Array,
+    hparams: HParams,
+    terminal: jax.Array | None = None,
 ) -> jax.Array:
     """Clipped, reward-weighted TD target y = clip(lam * r + gamma * q_next, -lam / (1 - gamma), 0).
 
@@ -125,11 +129,14 @@ def critic_target(
         q_next: target-network Q of the next state, (B,).
         hindsight: whether each row's goal was relabelled, (B,) bool.
         hparams: supplies lambda_r, lambda_h, gamma.
+        terminal: optional (B,) bool; True rows do not bootstrap (y = lam * r).
 
     Returns:
         Targets (B,), with gradients stopped.
     """
     lam = jnp.where(hindsight, hparams.lambda_h, hparams.lambda_r)
+    if terminal is not None:
+        q_next = jnp.where(terminal, 0.0, q_next)
     y = lam * reward + hparams.gamma * q_next
     y = jnp.clip(y, -lam / (1.0 - hparams.gamma), 0.0)
     return jax.lax.stop_gradient(y)
@@ -166,6 +173,7 @@ def make_ddpg(
     noise_clip: float = 0.5,
     policy_delay: int = 1,
     layer_norm: bool = False,
+    terminal_on_success: bool = False,
 ) -> DDPG:
     """Builds the DDPG functions for fixed dimensions and architecture.
 
@@ -184,6 +192,9 @@ def make_ddpg(
         policy_delay: the actor is updated on every policy_delay-th gradient step (TD3's
             delayed policy update); 1 (baselines) updates it on every step.
         layer_norm: LayerNorm in the critic's hidden layers.
+        terminal_on_success: a transition whose reward says the goal was reached does not
+            bootstrap (its target is its reward, 0). Fetch episodes end by time limit only, so
+            this treats reaching the goal as the end of the task; off in baselines.
 
     Returns:
         A DDPG of pure, jittable functions.
@@ -277,7 +288,9 @@ def make_ddpg(
             eps = jnp.clip(eps, -noise_clip * max_u, noise_clip * max_u)
             next_action = jnp.clip(next_action + eps, -max_u, max_u)
         q_next = critic.apply(state.target_critic_params, next_obs, next_goal, next_action)
-        y = critic_target(batch.reward, q_next, batch.hindsight, hparams)
+        # Rewards are -1 (goal not reached) or 0 (reached).
+        terminal = batch.reward > -0.5 if terminal_on_success else None
+        y = critic_target(batch.reward, q_next, batch.hindsight, hparams, terminal)
         q = critic.apply(critic_params, obs, goal, batch.action)
         return jnp.mean(jnp.square(q - y)), jnp.mean(q)
 

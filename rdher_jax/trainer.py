@@ -104,6 +104,7 @@ def make_trainer(cfg, env) -> Trainer:
         obs_dim, goal_dim, act_dim, hidden=(cfg.hidden,) * cfg.layers,
         target_noise=cfg.target_noise, noise_clip=cfg.noise_clip,
         policy_delay=cfg.policy_delay, layer_norm=cfg.layer_norm,
+        terminal_on_success=cfg.terminal_on_success,
     )
     n_envs, n_test = cfg.num_envs, cfg.n_test_rollouts
     v_reset, v_step = jax.vmap(env.reset), jax.vmap(env.step)

@@ -143,6 +143,13 @@ def test_critic_target_table():
     expected = np.clip(table[:, 0] + 0.98 * (table[:, 1] - 60.0), -50.0, 0.0)
     np.testing.assert_allclose(np.asarray(y), expected, rtol=1e-5)
 
+    # Terminal rows do not bootstrap: y = lam * r, whatever q_next is.
+    terminal = jnp.asarray(np.arange(len(table)) % 2 == 0)
+    y = critic_target(reward, q_next, hindsight, h, terminal)
+    lam = np.where(table[:, 2] > 0, 0.5, 1.0)
+    want = np.where(np.arange(len(table)) % 2 == 0, lam * table[:, 0], table[:, 3])
+    np.testing.assert_allclose(np.asarray(y), want, rtol=1e-6, atol=1e-6)
+
 
 @jax.jit
 def _target_and_grad(reward, q_next, hindsight, h):
@@ -426,3 +433,24 @@ def test_layer_norm_critic():
     o, g, a = jnp.ones((2, OBS)), jnp.ones((2, GOAL)), jnp.ones((2, ACT))
     np.testing.assert_allclose(d.critic.apply(scaled, o, g, a), d.critic.apply(s.critic_params,
                                o, g, a), rtol=1e-4, atol=1e-5)
+
+
+def test_terminal_on_success_stops_bootstrapping_on_reached_goals():
+    d = make_ddpg(OBS, GOAL, ACT, hidden=(8, 8), max_u=MAX_U, clip_obs=CLIP_OBS,
+                  norm_eps=NORM_EPS, norm_clip=NORM_CLIP, terminal_on_success=True)
+    h = HParams.default()
+    state = _state(h, _batch(4))
+    batch = _batch(8)
+    obs, goal = normalise(state, batch.next_obs, batch.next_goal)
+    o, g = normalise(state, batch.obs, batch.goal)
+    pi = _np_actor(state.target_actor_params, np.asarray(obs), np.asarray(goal), MAX_U)
+    q_next = _np_critic(state.target_critic_params, np.asarray(obs), np.asarray(goal), pi, MAX_U)
+    reward = np.asarray(batch.reward)
+    y = np.clip(reward + 0.98 * np.where(reward == 0, 0.0, q_next), -50, 0)
+    q = _np_critic(state.critic_params, np.asarray(o), np.asarray(g), np.asarray(batch.action),
+                   MAX_U)
+    assert (reward == 0).any() and (reward == -1).any()
+    loss = float(d.critic_loss(state.critic_params, state, batch, h)[0])
+    assert loss == pytest.approx(np.mean((q - y) ** 2), rel=1e-4)
+    assert loss != pytest.approx(float(D.critic_loss(state.critic_params, state, batch, h)[0]),
+                                 rel=1e-4)
