@@ -1,0 +1,51 @@
+"""The paper's benchmark (section 5.3, Fig. 9, Tables 2 and 3): algorithms x tasks x seeds.
+
+One vmapped sweep per (algorithm, task), its seeds the run axis (``python -m rdher_jax.sweep
+env=<task> algo=<algo> seeds=N``). RDHER gets no ``lambdas``, so the config resolves the paper's
+pair for the task (Reach and PickAndPlace λ_r = 2, λ_h = 1; Push and Slide 4 and 0.5, chosen in
+the paper's ablation); the others run at (1, 1).
+
+Outputs (small text files; checkpoints stay in the sweep directories):
+``<out>/benchmark/<profile>/<task>/<algo>/s<seed>.csv`` (each run's metrics.csv) and
+``run_info.json`` (command, budget, hardware, versions, seeds, wall clock); then
+``experiments/report.py`` writes ``summary.md`` (best-policy and final success beside the
+paper's Table 2, wall clock beside its Table 3, the hindsight-bias diagnostic), ``summary.csv``
+and the figures under ``<out>/benchmark/<profile>/``.
+
+Resumable: the sweeps live in ``<runs-dir>/benchmark/<profile>/<task>/<algo>``; running the same
+command again continues an unfinished sweep from its last checkpoint and skips a finished one.
+
+    python experiments/benchmark.py --profile tiny --algos her rdher   # smoke test
+    python experiments/benchmark.py --profile cpu                      # FetchReach, 5 algos
+    python experiments/benchmark.py --profile paper                    # on a GPU
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from profiles import ALGO_LABELS, BENCHMARK_ALGOS, Setting, add_common_args, run_experiment
+
+KIND = "benchmark"
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    ap = argparse.ArgumentParser(prog="python experiments/benchmark.py",
+                                 description=__doc__.split("\n\n")[0])
+    add_common_args(ap)
+    ap.add_argument("--algos", nargs="+", choices=BENCHMARK_ALGOS, default=list(BENCHMARK_ALGOS),
+                    help="algorithms, run in the order given (default: all five)")
+    args = ap.parse_args(argv)
+    algos = list(dict.fromkeys(args.algos))
+
+    def sweeps(task: str) -> list[tuple[str, str, object, tuple[Setting, ...]]]:
+        return [(a, a, None, (Setting(a, ALGO_LABELS[a], a, None, BENCHMARK_ALGOS.index(a)),))
+                for a in algos]
+
+    return run_experiment(KIND, "benchmark.py", args, argv, sweeps)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

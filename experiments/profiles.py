@@ -1,0 +1,395 @@
+"""Budget profiles of the paper's experiments, and the sweep driver of ablation.py and benchmark.py.
+
+A profile gives each task a :class:`Budget`: how many seeds, and the ``key=value`` training
+settings every sweep of that task gets (the algorithm, the λ pairs and the seeds come from the
+experiment). The profile's name, doc and the task's budget are written into every setting's
+``run_info.json`` under ``experiments/results/``, so each table says what budget produced it.
+
+- ``tiny``: FetchReach only, 2 epochs of 2 cycles, 4 updates of batch 32, 32-unit networks, 2
+  seeds. A smoke test of the whole pipeline (the tests run it); learns nothing.
+- ``cpu``: what a 2-core CPU finishes. FetchReach at the paper's learner settings (Table 1), 5
+  seeds, 5 epochs of 10 cycles (5,000 env steps per run, the default of ``python -m
+  rdher_jax.train`` for Reach, where HER and RDHER reach 0.9-1.0 test success). FetchPush:
+  :data:`PUSH_CPU`, a placeholder whose epoch count the maintainer sets; until then the cpu
+  profile refuses FetchPush unless ``--epochs`` is given.
+- ``paper``: the paper's budget, for a GPU: every task, Table 1's settings, 5 seeds, 50 epochs
+  (10 cycles each for Reach, 50 for the others). The paper does not state its epoch counts; 50 is
+  ``n_epochs``'s default in the code it builds on (openai/baselines ``her/experiment/train.py``,
+  mengf1/DHER ``train_dyreach.py``) and fits Table 3's wall clock (HER on Push: 3 h 30 min on
+  one CPU core, i.e. 4.2 min per 50-cycle epoch; on Reach 46 min, 56 s per 10-cycle epoch).
+
+Sweep directories (with checkpoints) live under ``<runs-dir>/<kind>/<profile>/<task>/<sweep>``
+and are what makes a long experiment resumable: :func:`run_job` continues an unfinished sweep
+(``resume=``), skips a finished one, and starts a missing one.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import os
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from rdher_jax.config import ConfigError
+
+HERE = Path(__file__).resolve().parent
+DEFAULT_OUT = HERE / "results"
+DEFAULT_RUNS = HERE.parent / "runs" / "experiments"
+
+TASKS: tuple[str, ...] = ("FetchReach", "FetchPush", "FetchSlide", "FetchPickAndPlace")
+BENCHMARK_ALGOS: tuple[str, ...] = ("ddpg", "her", "cher", "dher", "rdher")
+# Section 5.2: the pairs {1, 2}, {1, 4}, {0.5, 4} in both orders, as (lambda_r, lambda_h).
+ABLATION_PAIRS: tuple[tuple[float, float], ...] = (
+    (1.0, 2.0), (2.0, 1.0), (1.0, 4.0), (4.0, 1.0), (0.5, 4.0), (4.0, 0.5),
+)
+ALGO_LABELS: dict[str, str] = {"ddpg": "DDPG", "her": "HER", "cher": "CHER", "dher": "DHER",
+                               "rdher": "RDHER", "archer": "ARCHER"}
+
+
+@dataclass(frozen=True)
+class Budget:
+    """Seeds and shared ``key=value`` settings of every sweep of one task."""
+
+    seeds: int
+    settings: Mapping[str, Any]  # epochs None: not decided yet (a placeholder)
+    note: str = ""
+    placeholder: bool = False
+
+    def resolved(self, epochs: int | None = None) -> dict[str, Any]:
+        """The settings with ``epochs`` overridden; a ConfigError while it is still unset."""
+        out = dict(self.settings)
+        if epochs is not None:
+            out["epochs"] = epochs
+        if out.get("epochs") is None:
+            raise ConfigError(f"this budget has no epoch count yet ({self.note}); set it in "
+                              "experiments/profiles.py or pass --epochs N")
+        return out
+
+
+@dataclass(frozen=True)
+class Profile:
+    doc: str
+    budgets: Mapping[str, Budget]
+    default_tasks: tuple[str, ...]
+
+
+# Table 1 of the paper (baselines' HER settings at one MPI worker), written out so that every
+# run's json records them; the trainer's defaults are the same values.
+PAPER_LEARNER: dict[str, Any] = {
+    "num_envs": 2, "n_batches": 40, "batch_size": 256, "buffer_size": 1_000_000,
+    "n_test_rollouts": 10, "hidden": 256, "layers": 3,
+}
+TINY = Budget(2, {"epochs": 2, "n_cycles": 2, "n_batches": 4, "batch_size": 32,
+                  "buffer_size": 2000, "n_test_rollouts": 2, "hidden": 32},
+              "smoke test of the pipeline; learns nothing")
+REACH_CPU = Budget(5, {"epochs": 5, "n_cycles": 10, **PAPER_LEARNER},
+                   "the paper's learner; 5 epochs (5,000 env steps per run) in place of its 50")
+# PLACEHOLDER, for the maintainer to decide: FetchPush on a 2-core CPU. preset=fast (one episode
+# and 40 updates per cycle, target networks every 2nd update by 0.99) and 3 seeds; the epoch
+# count is not set, so the cpu profile refuses FetchPush until it is (or --epochs is given).
+# For sizing: one fast FetchPush epoch of one run took 7.6 s in experiments/results/bench_learning
+# (400 epochs in 50.8 min), so one epoch of the whole Push set (7 x 3 ablation runs and 5 x 3
+# benchmark runs, DHER/CHER dearer) is about 5 minutes on this CPU, by that estimate.
+PUSH_CPU = Budget(3, {"preset": "fast", "epochs": None},
+                  "PLACEHOLDER: FetchPush cpu budget, epoch count to be decided",
+                  placeholder=True)
+
+PROFILES: dict[str, Profile] = {
+    "tiny": Profile("FetchReach smoke test: 2 epochs of 2 cycles, tiny networks, 2 seeds",
+                    {"FetchReach": TINY}, ("FetchReach",)),
+    "cpu": Profile("what a 2-core CPU finishes: FetchReach at the paper's settings for 5 epochs, "
+                   "5 seeds; FetchPush a placeholder (preset=fast, 3 seeds, epochs unset)",
+                   {"FetchReach": REACH_CPU, "FetchPush": PUSH_CPU}, ("FetchReach",)),
+    "paper": Profile(
+        "the paper's budget for a GPU: Table 1's settings, 50 epochs (Reach 10 cycles each, "
+        "others 50), 5 seeds, every task",
+        {t: Budget(5, {"epochs": 50, "n_cycles": 10 if t == "FetchReach" else 50,
+                       **PAPER_LEARNER}, "the paper's settings (epochs: see profiles.py)")
+         for t in TASKS},
+        TASKS),
+}
+
+
+def num(x: float) -> str:
+    """1.0 -> '1', 0.5 -> '0.5' (as rdher_jax.sweep names its runs)."""
+    return str(int(x)) if float(x).is_integer() else repr(float(x))
+
+
+def budget_for(profile: str, task: str) -> Budget:
+    prof = PROFILES[profile]
+    if task not in prof.budgets:
+        raise ConfigError(f"profile {profile} has no budget for {task}; it has "
+                          f"{', '.join(prof.budgets)}")
+    return prof.budgets[task]
+
+
+# ------------------------------------------------------------------ sweeps
+
+@dataclass(frozen=True)
+class Setting:
+    """One curve: the runs of a sweep with one λ pair (or all of them when ``lambdas`` is None)."""
+
+    name: str  # its results directory
+    label: str
+    algo: str
+    lambdas: tuple[float, float] | None
+    order: int  # position in tables and legends
+
+
+@dataclass(frozen=True)
+class Job:
+    """One vmapped sweep: a task, an algorithm, its λ pairs x seeds, and the settings it feeds."""
+
+    kind: str  # ablation | benchmark
+    profile: str
+    task: str
+    name: str  # the sweep's directory name
+    algo: str
+    lambdas: tuple[tuple[float, float], ...] | None  # None: the config's default pair
+    seeds: int
+    settings: Mapping[str, Any]
+    outputs: tuple[Setting, ...]
+    runs_dir: Path
+    budget: Budget
+
+    @property
+    def sweep_dir(self) -> Path:
+        return self.runs_dir / self.kind / self.profile / self.task / self.name
+
+    @property
+    def epochs(self) -> int:
+        return int(self.settings["epochs"])
+
+    def argv(self, progress: bool) -> list[str]:
+        """The sweep's key=value arguments, without sweep_dir= / resume=."""
+        out = [f"env={self.task}", f"algo={self.algo}"]
+        out += [f"{k}={v}" for k, v in self.settings.items()]
+        if self.lambdas is not None:
+            out.append("lambdas=[" + ",".join(f"[{num(a)},{num(b)}]" for a, b in self.lambdas)
+                       + "]")
+        out += [f"seeds={self.seeds}", f"progress={str(progress).lower()}"]
+        return out
+
+
+def make_jobs(kind: str, profile: str, tasks: Sequence[str], runs_dir: Path,
+              seeds: int | None, epochs: int | None,
+              sweeps: Callable[[str], list[tuple[str, str, Any, tuple[Setting, ...]]]]
+              ) -> list[Job]:
+    """One Job per (task, sweep) given by ``sweeps(task)`` -> [(name, algo, lambdas, outputs)]."""
+    jobs = []
+    for task in tasks:
+        b = budget_for(profile, task)
+        settings = b.resolved(epochs)
+        for name, algo, lambdas, outputs in sweeps(task):
+            jobs.append(Job(kind, profile, task, name, algo, lambdas, seeds or b.seeds,
+                            settings, outputs, runs_dir, b))
+    return jobs
+
+
+def _finished(sweep_dir: Path, epochs: int) -> bool:
+    """Every run of the sweep has ``epochs`` epochs logged, or has diverged."""
+    try:
+        rows = json.loads((sweep_dir / "summary.json").read_text(encoding="utf-8"))["runs"]
+    except (OSError, ValueError, KeyError):
+        return False
+    return bool(rows) and all(r["epochs"] >= epochs or r["status"] != "ok" for r in rows)
+
+
+def sweep_args(job: Job, progress: bool) -> tuple[list[str], str]:
+    """The sweep's arguments for this call and what it will do: start, resume or skip."""
+    d = job.sweep_dir
+    argv = job.argv(progress)
+    if (d / "sweep.yaml").is_file():
+        if _finished(d, job.epochs):
+            return argv + [f"resume={d}"], "skip"
+        return argv + [f"resume={d}"], "resume"
+    if d.is_dir() and any(d.iterdir()):
+        raise ConfigError(f"{d} exists but holds no sweep.yaml (a sweep stopped while it was "
+                          "starting); remove it to start that sweep again")
+    return argv + [f"sweep_dir={d}"], "start"
+
+
+def run_job(job: Job, progress: bool, dry_run: bool = False, log=print) -> str:
+    """Start, resume or skip one sweep; returns what it did. Bad arguments are ConfigErrors."""
+    import shlex
+
+    from rdher_jax import sweep as sw
+
+    argv, action = sweep_args(job, progress)
+    cmd = shlex.join(["python", "-m", "rdher_jax.sweep", *argv])
+    if action == "skip":
+        log(f"[{job.task} {job.name}] finished ({job.epochs} epochs): {job.sweep_dir}")
+        return action
+    spec = sw.parse_sweep_args(argv)  # validates everything before anything runs
+    log(f"[{job.task} {job.name}] {action}{' (dry run)' if dry_run else ''}: {cmd}")
+    if dry_run:
+        return action
+    try:
+        sw.sweep(spec, argv, log=log)
+    except sw.TrainingDiverged as e:  # every run diverged: its files keep the good epochs
+        log(f"[{job.task} {job.name}] {e}")
+        return "diverged"
+    md = (job.sweep_dir / "summary.md").read_text(encoding="utf-8")
+    log(md.split("\n\n| run |", 1)[0].rstrip())
+    return action
+
+
+# ------------------------------------------------------------------ results
+
+HARDWARE_KEYS = ("backend", "scene", "jax_backend", "devices", "cpu_count", "machine",
+                 "processor", "python")
+
+
+def _last_row(text: str) -> dict[str, str] | None:
+    rows = list(csv.DictReader(io.StringIO(text)))
+    return rows[-1] if rows else None
+
+
+def _rel(p: Path) -> str:
+    try:
+        return os.path.relpath(p.resolve(), Path.cwd())
+    except ValueError:  # another drive
+        return str(p)
+
+
+def collect(job: Job, out_root: Path, command: str, log=print) -> list[Path]:
+    """Copy each run's metrics.csv and a trimmed run_info.json into
+    ``<out_root>/<kind>/<profile>/<task>/<setting>/`` (``s<seed>.csv``, ``run_info.json``).
+
+    Small text files only; checkpoints stay in the sweep directory. Returns the setting dirs.
+    """
+    d = job.sweep_dir
+    try:
+        rows = json.loads((d / "summary.json").read_text(encoding="utf-8"))["runs"]
+        info = json.loads((d / "run_info.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError, KeyError):
+        log(f"[{job.task} {job.name}] nothing to collect yet in {d}")
+        return []
+    written = []
+    for s in job.outputs:
+        mine = [r for r in rows
+                if s.lambdas is None or (r["lambda_r"], r["lambda_h"]) == tuple(s.lambdas)]
+        dest = out_root / job.kind / job.profile / job.task / s.name
+        dest.mkdir(parents=True, exist_ok=True)
+        runs: dict[str, Any] = {}
+        wall = 0.0
+        for r in mine:
+            src = d / r["run"] / "metrics.csv"
+            if not src.is_file():
+                continue
+            text = src.read_text(encoding="utf-8")
+            last = _last_row(text)
+            if last is None:
+                continue
+            (dest / f"s{r['seed']}.csv").write_text(text, encoding="utf-8")
+            wall = max(wall, float(last["wall_time"]))
+            runs[f"s{r['seed']}"] = {"epochs": int(last["epoch"]),
+                                     "env_steps": int(float(last["env_steps"])),
+                                     "status": r["status"],
+                                     "wall_clock_s": float(last["wall_time"])}
+        for stale in dest.glob("s*.csv"):
+            if stale.stem not in runs:
+                stale.unlink()
+        pair = (mine[0]["lambda_r"], mine[0]["lambda_h"]) if mine else (None, None)
+        meta = {
+            "kind": job.kind, "profile": job.profile, "task": job.task, "setting": s.name,
+            "label": s.label, "algo": s.algo, "order": s.order,
+            "lambda_r": pair[0], "lambda_h": pair[1],
+            "seeds": sorted(int(k[1:]) for k in runs),
+            "budget": {"profile": job.profile, "profile_doc": PROFILES[job.profile].doc,
+                       "seeds": job.seeds, "settings": dict(job.settings),
+                       "note": job.budget.note, "placeholder": job.budget.placeholder},
+            "command": command,
+            "sweep": {"name": job.name, "dir": _rel(d), "command": info.get("command"),
+                      "runs": info.get("n_runs"), "program": info.get("program"),
+                      "state_bytes_per_run": info.get("state_bytes_per_run")},
+            "hardware": {k: info.get(k) for k in HARDWARE_KEYS},
+            "versions": info.get("versions"),
+            "runs": runs,
+            # Runs of one sweep are one program: they share its wall clock (first epoch's
+            # compilation included, process start and env build not).
+            "wall_clock_s": wall,
+            "wall_clock_per_run_s": wall / info["n_runs"] if info.get("n_runs") else None,
+        }
+        (dest / "run_info.json").write_text(json.dumps(meta, indent=1, sort_keys=True) + "\n",
+                                            encoding="utf-8")
+        written.append(dest)
+    log(f"[{job.task} {job.name}] collected {len(job.outputs)} setting(s) into "
+        f"{out_root / job.kind / job.profile / job.task}")
+    return written
+
+
+# ------------------------------------------------------------------ the command line
+
+def add_common_args(ap: Any) -> None:
+    """The arguments ablation.py and benchmark.py share."""
+    import argparse
+
+    ap.add_argument("--profile", choices=tuple(PROFILES), required=True,
+                    help="budget profile (see experiments/profiles.py): "
+                    + "; ".join(f"{k}: {p.doc}" for k, p in PROFILES.items()))
+    ap.add_argument("--tasks", nargs="+", choices=TASKS, default=None, metavar="TASK",
+                    help=f"tasks to run, of {', '.join(TASKS)}; default: the profile's "
+                    "(tiny, cpu: FetchReach; paper: all four)")
+    ap.add_argument("--seeds", type=int, default=None,
+                    help="seeds 0..N-1; default: the profile's for the task")
+    ap.add_argument("--epochs", type=int, default=None,
+                    help="override the profile's epoch count (an unfinished or finished sweep "
+                    "is continued to it)")
+    ap.add_argument("--out", type=Path, default=DEFAULT_OUT,
+                    help="results root; per-run CSVs, jsons and the report go under "
+                    "<out>/<kind>/<profile>/ (default: experiments/results)")
+    ap.add_argument("--runs-dir", type=Path, default=DEFAULT_RUNS,
+                    help="root of the sweep directories (checkpoints), "
+                    "<runs-dir>/<kind>/<profile>/<task>/<sweep> (default: runs/experiments)")
+    ap.add_argument("--dry-run", action="store_true",
+                    help="validate and print each sweep's command and whether it would start, "
+                    "resume or be skipped; train and write nothing")
+    ap.add_argument("--collect-only", action="store_true",
+                    help="train nothing: copy what the sweep directories hold now (e.g. while "
+                    "the sweeps run in another process) and write the report")
+    ap.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
+                    help="progress bars (default: when stderr is a terminal)")
+
+
+def run_experiment(kind: str, script: str, args: Any, argv: Sequence[str],
+                   sweeps: Callable[[str], list[tuple[str, str, Any, tuple[Setting, ...]]]]
+                   ) -> int:
+    """Plan, run (or resume, or skip) and collect every sweep, then write the report.
+
+    Returns the exit status: 0, or 2 after a one-line ``error:`` for a bad setting.
+    """
+    import shlex
+    import sys
+
+    try:
+        for name in ("seeds", "epochs"):
+            v = getattr(args, name)
+            if v is not None and v < 1:
+                raise ConfigError(f"--{name} must be >= 1, got {v}")
+        tasks = list(dict.fromkeys(args.tasks or PROFILES[args.profile].default_tasks))
+        jobs = make_jobs(kind, args.profile, tasks, args.runs_dir, args.seeds, args.epochs,
+                         sweeps)
+        progress = sys.stderr.isatty() if args.progress is None else args.progress
+        command = shlex.join(["python", f"experiments/{script}", *argv])
+        for task in tasks:
+            mine = [j for j in jobs if j.task == task]
+            for job in mine:
+                if not args.collect_only:
+                    run_job(job, progress, dry_run=args.dry_run)
+                if not args.dry_run:
+                    collect(job, args.out, command)
+            if not args.dry_run:
+                import report
+
+                for p in report.write_reports(args.out, only={(kind, args.profile)}):
+                    print(f"wrote {p}")
+    except ConfigError as e:
+        sys.stdout.flush()
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    return 0

@@ -1,0 +1,560 @@
+"""Tables and figures of the paper's experiments, from the committed per-run CSVs alone.
+
+    python experiments/report.py                       # every kind and profile present
+    python experiments/report.py --results DIR
+
+Reads ``<results>/<ablation|benchmark>/<profile>/<task>/<setting>/s<seed>.csv`` and the
+``run_info.json`` beside them (both written by ``experiments/ablation.py`` and
+``experiments/benchmark.py``), never the run directories, and writes per ``<kind>/<profile>``:
+
+- ``summary.md``: best-policy success (the max over epochs of ``test_success``, as the paper's
+  Table 2 reports the best policy) and final success (mean of the last 3 epochs), each as mean ±
+  sample std over seeds with a 95% t confidence interval; the wall clock of each sweep and its
+  runs with the hardware it ran on; the hindsight-bias diagnostic (the ``bias_*`` columns, mean
+  over the last 3 epochs and seeds). Benchmark tables carry the paper's Tables 2 and 3 beside.
+- ``summary.csv``: the same numbers, one row per (task, setting).
+- ``success_epochs.png``, ``success_env_steps.png``: test success against epochs and against
+  env steps per run, median over seeds with the interquartile band; one panel per task (the
+  ablation's 7 settings or the benchmark's algorithms in each), as the paper's Figs. 5-9.
+
+Deterministic: tasks and settings in a fixed order, fixed number formats, no dates; a second run
+on the same files writes byte-identical tables (PNGs are written without a Software/date tag).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import math
+import statistics
+import sys
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+HERE = Path(__file__).resolve().parent
+KINDS = ("ablation", "benchmark")
+TASK_ORDER = ("FetchReach", "FetchPush", "FetchSlide", "FetchPickAndPlace")
+LAST = 3  # epochs averaged for "final" success and for the bias diagnostic
+BIAS_COLS = ("bias_real", "bias_her", "bias_dher", "bias_unw_real", "bias_unw_her",
+             "bias_unw_dher")
+
+# The paper's Table 2 (best-policy success, %, mean over 5 seeds) and Table 3 (wall clock of
+# one run, one CPU core), per task and algorithm.
+PAPER_TABLE2: dict[str, dict[str, int]] = {
+    "FetchReach": {"ddpg": 100, "her": 88, "cher": 89, "dher": 100, "rdher": 100},
+    "FetchPush": {"ddpg": 15, "her": 39, "cher": 14, "dher": 21, "rdher": 58},
+    "FetchSlide": {"ddpg": 2, "her": 24, "cher": 17, "dher": 41, "rdher": 50},
+    "FetchPickAndPlace": {"ddpg": 8, "her": 25, "cher": 33, "dher": 45, "rdher": 47},
+}
+PAPER_TABLE3: dict[str, dict[str, str]] = {
+    "FetchReach": {"ddpg": "00:50:24", "her": "00:46:55", "cher": "01:45:13",
+                   "dher": "00:11:27", "rdher": "00:11:16"},
+    "FetchPush": {"ddpg": "03:35:59", "her": "03:30:32", "cher": "06:43:20",
+                  "dher": "04:10:14", "rdher": "03:53:16"},
+    "FetchSlide": {"ddpg": "01:53:53", "her": "01:49:18", "cher": "03:41:51",
+                   "dher": "01:57:47", "rdher": "01:43:58"},
+    "FetchPickAndPlace": {"ddpg": "03:34:50", "her": "03:28:32", "cher": "07:50:02",
+                          "dher": "04:06:21", "rdher": "03:50:06"},
+}
+# The pair the paper picked per task from its ablation (section 5.3).
+PAPER_PICK: dict[str, tuple[float, float]] = {
+    "FetchReach": (2.0, 1.0), "FetchPickAndPlace": (2.0, 1.0),
+    "FetchPush": (4.0, 0.5), "FetchSlide": (4.0, 0.5),
+}
+
+# Two-sided 95% quantiles t(0.975, df) of Student's t for df = 1..30.
+T975 = (12.7062, 4.3027, 3.1824, 2.7764, 2.5706, 2.4469, 2.3646, 2.3060, 2.2622, 2.2281,
+        2.2010, 2.1788, 2.1604, 2.1448, 2.1314, 2.1199, 2.1098, 2.1009, 2.0930, 2.0860,
+        2.0796, 2.0739, 2.0687, 2.0639, 2.0595, 2.0555, 2.0518, 2.0484, 2.0452, 2.0423)
+
+
+def t975(df: int) -> float:
+    """t(0.975, df): the table above, then the Cornish-Fisher expansion (error < 1e-4)."""
+    if df < 1:
+        return math.nan
+    if df <= len(T975):
+        return T975[df - 1]
+    z = 1.959963984540054
+    g1 = (z**3 + z) / 4
+    g2 = (5 * z**5 + 16 * z**3 + 3 * z) / 96
+    g3 = (3 * z**7 + 19 * z**5 + 17 * z**3 - 15 * z) / 384
+    return z + g1 / df + g2 / df**2 + g3 / df**3
+
+
+@dataclass(frozen=True)
+class Stat:
+    n: int
+    mean: float
+    std: float  # sample std (ddof=1); nan for n < 2
+    lo: float  # 95% t interval of the mean; nan for n < 2
+    hi: float
+
+
+def stat(xs: Sequence[float]) -> Stat:
+    xs = [float(x) for x in xs if math.isfinite(float(x))]
+    n = len(xs)
+    if n == 0:
+        return Stat(0, math.nan, math.nan, math.nan, math.nan)
+    mean = statistics.fmean(xs)
+    if n < 2:
+        return Stat(1, mean, math.nan, math.nan, math.nan)
+    sd = statistics.stdev(xs)
+    half = t975(n - 1) * sd / math.sqrt(n)
+    return Stat(n, mean, sd, mean - half, mean + half)
+
+
+# ------------------------------------------------------------------ reading
+
+@dataclass
+class SettingData:
+    task: str
+    name: str
+    meta: dict[str, Any]
+    runs: dict[int, list[dict[str, str]]]  # seed -> metrics rows
+
+    @property
+    def order(self) -> tuple[int, str]:
+        return (int(self.meta.get("order", 99)), self.name)
+
+    def column(self, col: str) -> dict[int, list[float]]:
+        return {s: [_float(r.get(col, "")) for r in rows] for s, rows in self.runs.items()}
+
+
+def _float(x: str) -> float:
+    try:
+        return float(x)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def _task_key(task: str) -> tuple[int, str]:
+    return (TASK_ORDER.index(task) if task in TASK_ORDER else len(TASK_ORDER), task)
+
+
+def load(profile_dir: Path) -> list[SettingData]:
+    """Every setting under ``<kind>/<profile>/``, tasks and settings in table order."""
+    out = []
+    for task_dir in sorted(p for p in profile_dir.iterdir() if p.is_dir()):
+        for sdir in sorted(p for p in task_dir.iterdir() if p.is_dir()):
+            info = sdir / "run_info.json"
+            if not info.is_file():
+                continue
+            meta = json.loads(info.read_text(encoding="utf-8"))
+            runs = {}
+            for f in sdir.glob("s*.csv"):
+                if not f.stem[1:].isdigit():
+                    continue
+                with open(f, newline="", encoding="utf-8") as fh:
+                    rows = [r for r in csv.DictReader(fh) if r.get("test_success", "") != ""]
+                if rows:
+                    runs[int(f.stem[1:])] = rows
+            out.append(SettingData(task_dir.name, sdir.name, meta, dict(sorted(runs.items()))))
+    out.sort(key=lambda s: (_task_key(s.task), s.order))
+    return out
+
+
+# ------------------------------------------------------------------ numbers
+
+def per_seed(s: SettingData) -> dict[str, dict[int, float]]:
+    succ = s.column("test_success")
+    return {
+        "best": {k: max(v) for k, v in succ.items()},
+        "final": {k: statistics.fmean(v[-LAST:]) for k, v in succ.items()},
+    }
+
+
+def bias(s: SettingData) -> dict[str, float]:
+    """Mean of each bias column over the last LAST epochs and the seeds (finite values only)."""
+    out = {}
+    for col in BIAS_COLS:
+        vals = [x for v in s.column(col).values() for x in v[-LAST:] if math.isfinite(x)]
+        out[col] = statistics.fmean(vals) if vals else math.nan
+    return out
+
+
+def pct(x: float) -> str:
+    return "-" if not math.isfinite(x) else f"{100 * x:.1f}"
+
+
+def pm(st: Stat) -> str:
+    if st.n == 0:
+        return "-"
+    if st.n < 2:
+        return f"{pct(st.mean)} (1 seed)"
+    return f"{pct(st.mean)} ± {pct(st.std)}"
+
+
+def ci(st: Stat) -> str:
+    if st.n < 2:
+        return "-"
+    return f"[{pct(max(st.lo, 0.0))}, {pct(min(st.hi, 1.0))}]"
+
+
+def hms(seconds: float | None) -> str:
+    if seconds is None or not math.isfinite(seconds):
+        return "-"
+    s = int(round(seconds))
+    return f"{s // 3600:02d}:{s % 3600 // 60:02d}:{s % 60:02d}"
+
+
+def lam(s: SettingData) -> str:
+    lr, lh = s.meta.get("lambda_r"), s.meta.get("lambda_h")
+    return "-" if lr is None else f"{lr:g} / {lh:g}"
+
+
+def epochs_cell(s: SettingData) -> str:
+    done = sorted(len(v) for v in s.runs.values())
+    if not done:
+        return "0"
+    want = s.meta.get("budget", {}).get("settings", {}).get("epochs")
+    cell = str(done[0]) if done[0] == done[-1] else f"{done[0]}-{done[-1]}"
+    if want is not None and done[0] < int(want):
+        cell += f" of {want} (unfinished)"
+    return cell
+
+
+def env_steps(s: SettingData) -> str:
+    steps = [int(_float(v[-1]["env_steps"])) for v in s.runs.values()]
+    return f"{max(steps):,}" if steps else "0"
+
+
+def status(s: SettingData) -> str:
+    bad = sorted(k for k, r in s.meta.get("runs", {}).items() if r.get("status", "ok") != "ok")
+    return "ok" if not bad else "diverged: " + ", ".join(bad)
+
+
+def hardware(meta: dict[str, Any]) -> str:
+    h = meta.get("hardware", {})
+    devices = h.get("devices") or []
+    dev = f"{len(devices)} device{'s' if len(devices) != 1 else ''}"
+    if devices and h.get("jax_backend") != "cpu":
+        dev += f" ({devices[0]})"
+    return (f"{h.get('processor') or '?'} ({h.get('machine') or '?'}), {h.get('cpu_count')} "
+            f"CPU cores; JAX {h.get('jax_backend')}, {dev}; physics {h.get('backend')}")
+
+
+def _md_table(head: Sequence[str], rows: Iterable[Sequence[str]]) -> list[str]:
+    out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    out += ["| " + " | ".join(r) + " |" for r in rows]
+    return out
+
+
+# ------------------------------------------------------------------ markdown and csv
+
+TITLES = {"ablation": "Ablation of the reward weights (paper section 5.2, Figs. 4-8)",
+          "benchmark": "Benchmark of the algorithms (paper section 5.3, Fig. 9, Tables 2-3)"}
+
+
+def _budget_lines(data: Sequence[SettingData]) -> list[str]:
+    lines = []
+    seen = {}
+    for s in data:
+        b = s.meta.get("budget", {})
+        key = json.dumps(b, sort_keys=True)
+        seen.setdefault(s.task, {})[key] = b
+    for task, budgets in sorted(seen.items(), key=lambda kv: _task_key(kv[0])):
+        for b in budgets.values():
+            settings = " ".join(f"{k}={v}" for k, v in b.get("settings", {}).items())
+            mark = " **(placeholder budget)**" if b.get("placeholder") else ""
+            lines.append(f"- {task}: {b.get('seeds')} seeds, `{settings}`{mark} "
+                         f"({b.get('note', '')})")
+    return lines
+
+
+def _intro(kind: str, profile: str, data: Sequence[SettingData]) -> list[str]:
+    doc = next((s.meta.get("budget", {}).get("profile_doc") for s in data), "")
+    commands = sorted({s.meta.get("command", "") for s in data})
+    out = [f"# {TITLES[kind]}: profile `{profile}`", "",
+           "Written by `python experiments/report.py` from the per-run CSVs and `run_info.json` "
+           "files in the directories beside this file; rerun it rather than editing.", "",
+           f"Profile `{profile}`: {doc}. Budget per task (the settings all its sweeps share; "
+           "other keys at the trainer's defaults, which are the paper's Table 1):", "",
+           *_budget_lines(data), "",
+           "Commands:", "", *[f"- `{c}`" for c in commands], ""]
+    if kind == "ablation":
+        out += ["Vanilla HER is `algo=her`, a sweep of its own: under `algo=rdher` the pair "
+                "(1, 1) is DHER (combined rows mixed with 'future' rows), which the paper lists "
+                "as a different method from HER (Table 2). The six weighted settings are one "
+                "vmapped `algo=rdher` sweep. DHER (= RDHER at (1, 1)) is in the benchmark.", ""]
+    out += [f"Best = max over epochs of a run's test success (each epoch's mean over its "
+            "deterministic test episodes; the paper's Table 2 evaluates the best policy, so "
+            "ours is the more optimistic of the two for few test episodes). Final = mean of a "
+            f"run's last {LAST} epochs. Over seeds: mean ± sample std, and the 95% confidence "
+            "interval of the mean, mean ± t(0.975, n−1)·std/√n, clipped to [0, 100]. In %.", ""]
+    return out
+
+
+def _by_task(data: Sequence[SettingData]) -> dict[str, list[SettingData]]:
+    out: dict[str, list[SettingData]] = {}
+    for s in data:
+        out.setdefault(s.task, []).append(s)
+    return out
+
+
+def _wall_rows(data: Sequence[SettingData], paper: bool) -> list[list[str]]:
+    rows, seen = [], set()
+    for s in data:
+        sw = s.meta.get("sweep", {})
+        key = (s.task, sw.get("name"))
+        if key in seen:  # the settings of one sweep share its program and wall clock
+            continue
+        seen.add(key)
+        names = [t.name for t in data if t.task == s.task
+                 and t.meta.get("sweep", {}).get("name") == sw.get("name")]
+        row = [s.task, f"{sw.get('name')} ({', '.join(names)})" if len(names) > 1 else s.name,
+               str(sw.get("runs")), hms(s.meta.get("wall_clock_s")),
+               hms(s.meta.get("wall_clock_per_run_s")), hardware(s.meta)]
+        if paper:
+            row.append(PAPER_TABLE3.get(s.task, {}).get(s.meta.get("algo"), "-"))
+        rows.append(row)
+    return rows
+
+
+def summary_markdown(kind: str, profile: str, data: Sequence[SettingData]) -> str:
+    out = _intro(kind, profile, data)
+    tasks = _by_task(data)
+    stats = {(s.task, s.name): {k: stat(list(v.values())) for k, v in per_seed(s).items()}
+             for s in data}
+    bench = kind == "benchmark"
+
+    out += ["## Best-policy test success (%)", ""]
+    if bench:
+        algos = sorted({s.name for s in data}, key=lambda a: min(s.order for s in data
+                                                                 if s.name == a))
+        out.append("Ours: mean over seeds; in parentheses the paper's Table 2.")
+        out.append("")
+        rows = []
+        for task, ss in tasks.items():
+            have = {s.name: s for s in ss}
+            cells = []
+            for a in algos:
+                mine = pct(stats[(task, a)]["best"].mean) if a in have else "-"
+                ref = PAPER_TABLE2.get(task, {}).get(a)
+                cells.append(mine + (f" ({ref})" if ref is not None else ""))
+            rows.append([task, *cells])
+        out += _md_table(["task", *[data_label(a, data) for a in algos]], rows)
+    else:
+        names = []
+        for s in data:
+            if s.name not in names:
+                names.append(s.name)
+        rows = []
+        for n in names:
+            first = next(s for s in data if s.name == n)
+            cells = [pct(stats[(t, n)]["best"].mean) if (t, n) in stats else "-" for t in tasks]
+            rows.append([first.meta.get("label", n), lam(first), *cells])
+        out.append("Mean over seeds.")
+        out.append("")
+        out += _md_table(["setting", "λ_r / λ_h", *tasks], rows)
+    out.append("")
+
+    out += ["## Per task: best and final success (%)", ""]
+    head = ["task", "setting", "λ_r / λ_h", "seeds", "epochs", "env steps per run",
+            "best: mean ± std", "best: 95% CI", "final: mean ± std", "final: 95% CI"]
+    head += ["paper, Table 2"] if bench else ["paper's pick"]
+    head.append("status")
+    rows = []
+    for s in data:
+        st = stats[(s.task, s.name)]
+        row = [s.task, s.meta.get("label", s.name), lam(s), str(len(s.runs)), epochs_cell(s),
+               env_steps(s), pm(st["best"]), ci(st["best"]), pm(st["final"]), ci(st["final"])]
+        if bench:
+            ref = PAPER_TABLE2.get(s.task, {}).get(s.meta.get("algo"))
+            row.append("-" if ref is None else str(ref))
+        else:
+            pick = PAPER_PICK.get(s.task)
+            row.append("yes" if s.meta.get("algo") == "rdher" and pick is not None
+                       and (s.meta.get("lambda_r"), s.meta.get("lambda_h")) == pick else "")
+        row.append(status(s))
+        rows.append(row)
+    out += _md_table(head, rows)
+    out.append("")
+
+    out += ["## Wall clock", "",
+            "Per sweep: its runs are one vmapped program and share its wall clock (from the "
+            "sweep's start, first compilation included, process start and env build not; "
+            "summed over resumes). Per run = sweep / runs: on a CPU, N vmapped runs cost about N "
+            "single runs (experiments/results/bench_sweep.md), so it approximates one run's "
+            "time; on a GPU the runs share the device and it is a throughput, not one run's "
+            "time. HH:MM:SS."
+            + (" The paper's Table 3 is one run at the paper's budget on one CPU core: compare "
+               "with it at the paper profile only." if bench else ""), ""]
+    head = ["task", "sweep (settings)", "runs", "sweep wall clock", "per run", "hardware"]
+    head += ["paper, Table 3 (one run)"] if bench else []
+    out += _md_table(head, _wall_rows(data, bench))
+    out.append("")
+
+    out += ["## Hindsight-bias diagnostic", "",
+            f"Mean over the last {LAST} epochs and the seeds of Q(s, a, g) minus the discounted "
+            "return the row's goal received in its stored episode, per sample source (real, "
+            "HER-relabelled, DHER-combined): weighted as the critic was trained (Q − λ·G) and "
+            "unweighted (Q − G); '-' where a source had no rows (README, 'Hindsight-bias "
+            "diagnostic').", ""]
+    head = ["task", "setting", "λ_r / λ_h", "real", "HER", "DHER", "real, unw.", "HER, unw.",
+            "DHER, unw."]
+    rows = []
+    for s in data:
+        b = bias(s)
+        rows.append([s.task, s.meta.get("label", s.name), lam(s),
+                     *["-" if not math.isfinite(b[c]) else f"{b[c]:.2f}" for c in BIAS_COLS]])
+    out += _md_table(head, rows)
+    out += ["", "## Figures", "",
+            "Test success, median over seeds with the interquartile band.", "",
+            "![test success against epochs](success_epochs.png)", "",
+            "![test success against env steps](success_env_steps.png)", ""]
+    return "\n".join(out)
+
+
+def data_label(name: str, data: Sequence[SettingData]) -> str:
+    s = next(s for s in data if s.name == name)
+    return str(s.meta.get("label", name))
+
+
+CSV_FIELDS = ("task", "setting", "label", "algo", "lambda_r", "lambda_h", "seeds",
+              "epochs_min", "epochs_max", "env_steps", "best_mean", "best_std", "best_ci_lo",
+              "best_ci_hi", "final_mean", "final_std", "final_ci_lo", "final_ci_hi",
+              "paper_best", "sweep", "sweep_runs", "wall_clock_s", "wall_clock_per_run_s",
+              *BIAS_COLS)
+
+
+def _c(x: Any) -> str:
+    if x is None:
+        return ""
+    if isinstance(x, float):
+        return "nan" if not math.isfinite(x) else f"{x:.6f}"
+    return str(x)
+
+
+def summary_csv(kind: str, data: Sequence[SettingData]) -> str:
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(CSV_FIELDS)
+    for s in data:
+        ps = per_seed(s)
+        b, f = stat(list(ps["best"].values())), stat(list(ps["final"].values()))
+        done = [len(v) for v in s.runs.values()] or [0]
+        steps = max((int(_float(v[-1]["env_steps"])) for v in s.runs.values()), default=0)
+        paper = PAPER_TABLE2.get(s.task, {}).get(s.meta.get("algo")) if kind == "benchmark" \
+            else None
+        sw = s.meta.get("sweep", {})
+        bi = bias(s)
+        w.writerow([_c(x) for x in (
+            s.task, s.name, s.meta.get("label"), s.meta.get("algo"),
+            s.meta.get("lambda_r"), s.meta.get("lambda_h"), len(s.runs), min(done), max(done),
+            steps, b.mean, b.std, b.lo, b.hi, f.mean, f.std, f.lo, f.hi,
+            None if paper is None else paper / 100, sw.get("name"), sw.get("runs"),
+            s.meta.get("wall_clock_s"), s.meta.get("wall_clock_per_run_s"),
+            *[bi[c] for c in BIAS_COLS])])
+    return buf.getvalue()
+
+
+# ------------------------------------------------------------------ figures
+
+def _curve(s: SettingData, x_col: str) -> tuple[list[float], list[float], list[float],
+                                                  list[float]]:
+    """x, median, 25th and 75th percentile of test success per epoch over the seeds."""
+    import numpy as np
+
+    n = max((len(v) for v in s.runs.values()), default=0)
+    xs, med, q1, q3 = [], [], [], []
+    for i in range(n):
+        rows = [v[i] for v in s.runs.values() if len(v) > i]
+        y = np.array([_float(r["test_success"]) for r in rows])
+        x = float(np.median([_float(r[x_col]) for r in rows]))
+        xs.append(x)
+        med.append(float(np.median(y)))
+        q1.append(float(np.percentile(y, 25)))
+        q3.append(float(np.percentile(y, 75)))
+    return xs, med, q1, q3
+
+
+def figure(kind: str, profile: str, data: Sequence[SettingData], x_col: str, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    tasks = list(_by_task(data))
+    ncols = min(len(tasks), 2)
+    nrows = math.ceil(len(tasks) / ncols)
+    fig, axes = plt.subplots(nrows, ncols, figsize=(5.6 * ncols, 4.0 * nrows), squeeze=False)
+    cmap = plt.get_cmap("tab10")
+    for ax, task in zip(axes.flat, tasks, strict=False):
+        for s in (s for s in data if s.task == task):
+            x, med, q1, q3 = _curve(s, x_col)
+            if not x:
+                continue
+            order = int(s.meta.get("order", 9))
+            color = "black" if kind == "ablation" and s.name == "her" else cmap(order % 10)
+            label = s.meta.get("label", s.name)
+            if kind == "benchmark" and s.meta.get("algo") in ("rdher", "archer"):
+                label += f" (λ {lam(s)})"
+            ax.plot(x, med, color=color, lw=1.6, marker="o", ms=2.5, label=label,
+                    ls="--" if s.name == "her" and kind == "ablation" else "-")
+            ax.fill_between(x, q1, q3, color=color, alpha=0.15, lw=0)
+        n = max((len(s.runs) for s in data if s.task == task), default=0)
+        ax.set_title(task)
+        ax.set_xlabel("epoch" if x_col == "epoch" else "env steps per run")
+        ax.set_ylabel(f"test success (median, IQR; {n} seeds)")
+        ax.set_ylim(-0.02, 1.02)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, loc="lower right")
+    for ax in list(axes.flat)[len(tasks):]:
+        ax.set_visible(False)
+    fig.suptitle(f"{TITLES[kind].split(' (')[0]}, profile {profile}")
+    fig.tight_layout()
+    # No Software tag and no dates: the file depends on the data and matplotlib's version only.
+    fig.savefig(path, dpi=100, metadata={"Software": None})
+    plt.close(fig)
+
+
+# ------------------------------------------------------------------ driver
+
+def write_reports(results: Path, only: set[tuple[str, str]] | None = None) -> list[Path]:
+    """Write the tables and figures of every ``<kind>/<profile>`` under ``results`` (or only
+    those in ``only``); returns the files written."""
+    written = []
+    for kind in KINDS:
+        kdir = Path(results) / kind
+        if not kdir.is_dir():
+            continue
+        for pdir in sorted(p for p in kdir.iterdir() if p.is_dir()):
+            if only is not None and (kind, pdir.name) not in only:
+                continue
+            data = [s for s in load(pdir) if s.runs]
+            if not data:
+                continue
+            md = pdir / "summary.md"
+            md.write_text(summary_markdown(kind, pdir.name, data), encoding="utf-8")
+            sc = pdir / "summary.csv"
+            sc.write_text(summary_csv(kind, data), encoding="utf-8")
+            written += [md, sc]
+            for x_col, name in (("epoch", "success_epochs.png"),
+                                ("env_steps", "success_env_steps.png")):
+                figure(kind, pdir.name, data, x_col, pdir / name)
+                written.append(pdir / name)
+    return written
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python experiments/report.py",
+                                 description=__doc__.split("\n\n")[0])
+    ap.add_argument("--results", type=Path, default=HERE / "results",
+                    help="results root holding ablation/ and benchmark/ (default: "
+                    "experiments/results)")
+    args = ap.parse_args(argv)
+    written = write_reports(args.results)
+    if not written:
+        print(f"no ablation or benchmark results under {args.results}", file=sys.stderr)
+        return 1
+    for p in written:
+        print(f"wrote {p}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,199 @@
+"""experiments/ablation.py, benchmark.py and report.py end to end on the tiny profile.
+
+The sweeps run in this process (the scripts' ``main``), so programs compiled by one sweep are
+reused by the next one with the same shapes: the ablation's HER sweep and the benchmark's are
+the same program, and the benchmark's second call resumes first the algorithm compiled last.
+"""
+
+import csv
+import json
+import math
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+EXP = Path(__file__).resolve().parents[1] / "experiments"
+sys.path.insert(0, str(EXP))
+
+import ablation  # noqa: E402
+import benchmark  # noqa: E402
+import profiles  # noqa: E402
+import report  # noqa: E402
+
+ABLATION_SETTINGS = ["her", "rdher_lr1_lh2", "rdher_lr2_lh1", "rdher_lr1_lh4", "rdher_lr4_lh1",
+                     "rdher_lr0.5_lh4", "rdher_lr4_lh0.5"]
+REPORT_FILES = ["summary.md", "summary.csv", "success_epochs.png", "success_env_steps.png"]
+
+
+def read_csv(path):
+    with open(path, newline="", encoding="utf-8") as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.fixture(scope="module")
+def results(tmp_path_factory):
+    root = tmp_path_factory.mktemp("experiments")
+    out, runs = root / "results", root / "runs"
+    common = ["--profile", "tiny", "--out", str(out), "--runs-dir", str(runs), "--no-progress"]
+    assert ablation.main(common) == 0
+    # One epoch, then the same command at the profile's two epochs resumes both sweeps.
+    assert benchmark.main([*common, "--algos", "her", "ddpg", "--epochs", "1"]) == 0
+    first = {a: read_csv(out / "benchmark/tiny/FetchReach" / a / "s0.csv") for a in ("her", "ddpg")}
+    assert benchmark.main([*common, "--algos", "ddpg", "her"]) == 0
+    return {"out": out, "runs": runs, "common": common, "first": first}
+
+
+def test_ablation_layout(results):
+    task_dir = results["out"] / "ablation/tiny/FetchReach"
+    assert sorted(p.name for p in task_dir.iterdir()) == sorted(ABLATION_SETTINGS)
+    pairs = dict(zip(ABLATION_SETTINGS, [(1, 1), *profiles.ABLATION_PAIRS], strict=True))
+    for name in ABLATION_SETTINGS:
+        d = task_dir / name
+        assert sorted(p.name for p in d.iterdir()) == ["run_info.json", "s0.csv", "s1.csv"]
+        for seed in (0, 1):
+            rows = read_csv(d / f"s{seed}.csv")
+            assert [r["epoch"] for r in rows] == ["1", "2"]
+            assert {"test_success", "env_steps", "wall_time", "bias_real", "bias_unw_her"} \
+                <= set(rows[0])
+        meta = json.loads((d / "run_info.json").read_text())
+        assert meta["algo"] == ("her" if name == "her" else "rdher")
+        assert (meta["lambda_r"], meta["lambda_h"]) == pairs[name]
+        assert meta["profile"] == "tiny" and meta["seeds"] == [0, 1]
+        assert meta["budget"]["settings"] == dict(profiles.TINY.settings)
+        assert meta["command"].startswith("python experiments/ablation.py --profile tiny")
+        assert meta["sweep"]["runs"] == (2 if name == "her" else 12)
+        assert meta["sweep"]["name"] == ("her" if name == "her" else "rdher")
+        assert meta["hardware"]["cpu_count"] >= 1 and meta["versions"]["jax"]
+        assert meta["wall_clock_s"] > 0
+        assert all(r["status"] == "ok" and r["epochs"] == 2 for r in meta["runs"].values())
+    # Small text files only: no checkpoints next to the results.
+    suffixes = {p.suffix for p in results["out"].rglob("*") if p.is_file()}
+    assert suffixes <= {".csv", ".json", ".md", ".png"}
+    assert (results["runs"] / "ablation/tiny/FetchReach/rdher/checkpoints").is_dir()
+
+
+def test_benchmark_resumed_to_the_profile_epochs(results):
+    for algo in ("her", "ddpg"):
+        d = results["out"] / "benchmark/tiny/FetchReach" / algo
+        rows = read_csv(d / "s0.csv")
+        assert [r["epoch"] for r in rows] == ["1", "2"]
+        assert rows[0] == results["first"][algo][0]  # continued, not restarted
+        meta = json.loads((d / "run_info.json").read_text())
+        assert meta["budget"]["settings"]["epochs"] == 2
+        assert meta["sweep"]["runs"] == 2 and meta["seeds"] == [0, 1]
+
+
+def test_rerun_skips_finished_sweeps(results, capsys):
+    csv_path = results["out"] / "ablation/tiny/FetchReach/her/s0.csv"
+    before = csv_path.read_bytes()
+    assert ablation.main(results["common"]) == 0
+    out = capsys.readouterr().out
+    assert out.count("finished (2 epochs)") == 2
+    assert "start" not in out and "resume" not in out
+    assert csv_path.read_bytes() == before
+
+
+def test_collect_only_trains_nothing(results, capsys):
+    d = results["out"] / "benchmark/tiny/FetchReach/her"
+    (d / "s1.csv").unlink()
+    args = [*results["common"], "--algos", "her", "cher", "--collect-only"]
+    assert benchmark.main(args) == 0
+    out = capsys.readouterr().out
+    assert "start" not in out and "resume" not in out and "[FetchReach cher] nothing to" in out
+    assert (d / "s1.csv").is_file() and not (d.parent / "cher").exists()
+
+
+def test_report_files(results):
+    for kind, n in (("ablation", 7), ("benchmark", 2)):
+        d = results["out"] / kind / "tiny"
+        for name in REPORT_FILES:
+            assert (d / name).is_file() and (d / name).stat().st_size > 0
+        for name in REPORT_FILES[2:]:
+            assert (d / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        rows = read_csv(d / "summary.csv")
+        assert len(rows) == n and {r["task"] for r in rows} == {"FetchReach"}
+        for r in rows:
+            assert r["seeds"] == "2" and r["epochs_max"] == "2"
+            for col in ("best_mean", "final_mean", "best_ci_lo", "best_ci_hi"):
+                assert 0.0 <= float(r[col]) <= 1.0
+            assert float(r["wall_clock_s"]) > 0 and math.isfinite(float(r["bias_real"]))
+        md = (d / "summary.md").read_text(encoding="utf-8")
+        for head in ("## Best-policy test success", "## Per task", "## Wall clock",
+                     "## Hindsight-bias diagnostic", "success_epochs.png"):
+            assert head in md
+        for section in ("Per task", "Hindsight-bias diagnostic"):
+            text = md.split(f"## {section}", 1)[1].split("\n## ", 1)[0]
+            table = [ln for ln in text.splitlines() if ln.startswith("|")]
+            assert len(table) == 2 + n  # header, rule, one row per setting
+            assert len({ln.count("|") for ln in table}) == 1
+    bench = (results["out"] / "benchmark/tiny/summary.md").read_text(encoding="utf-8")
+    assert "| FetchReach | " in bench and "(88)" in bench and "00:46:55" in bench  # Tables 2, 3
+    abl = (results["out"] / "ablation/tiny/summary.md").read_text(encoding="utf-8")
+    assert "vanilla HER" in abl and "`algo=her`" in abl
+
+
+def test_report_regenerates_byte_identical_from_the_results_alone(results, tmp_path):
+    # A copy of the results, far from the sweep directories: the report needs nothing else.
+    copy = tmp_path / "results"
+    shutil.copytree(results["out"], copy)
+    before = {p.relative_to(copy): p.read_bytes() for p in copy.rglob("*") if p.is_file()}
+    proc = subprocess.run([sys.executable, str(EXP / "report.py"), "--results", str(copy)],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.count("wrote ") == 8
+    after = {p.relative_to(copy): p.read_bytes() for p in copy.rglob("*") if p.is_file()}
+    assert after.keys() == before.keys()
+    for k in after:  # tables and inputs; the PNGs too, as matplotlib writes them without dates
+        assert after[k] == before[k], k
+
+
+def test_dry_run_plans_every_algorithm_and_task(tmp_path, capsys):
+    args = ["--out", str(tmp_path / "out"), "--runs-dir", str(tmp_path / "runs"), "--dry-run"]
+    assert benchmark.main(["--profile", "paper", *args]) == 0
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if "(dry run)" in ln]
+    assert len(lines) == 4 * 5
+    for task in profiles.TASKS:
+        for algo in profiles.BENCHMARK_ALGOS:
+            (ln,) = [x for x in lines if f"env={task} algo={algo} " in x]
+            assert "seeds=5" in ln and "epochs=50" in ln and "lambdas" not in ln
+            assert f"n_cycles={10 if task == 'FetchReach' else 50}" in ln
+    assert ablation.main(["--profile", "paper", "--tasks", "FetchSlide", *args]) == 0
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if "(dry run)" in ln]
+    assert len(lines) == 2
+    assert "'lambdas=[[1,2],[2,1],[1,4],[4,1],[0.5,4],[4,0.5]]'" in lines[0]
+    assert "algo=her" in lines[1] and "lambdas" not in lines[1]
+    assert not (tmp_path / "out").exists() and not (tmp_path / "runs").exists()
+
+
+def test_cpu_push_is_a_placeholder_until_its_epochs_are_set(tmp_path, capsys):
+    args = ["--profile", "cpu", "--tasks", "FetchPush", "--out", str(tmp_path / "out"),
+            "--runs-dir", str(tmp_path / "runs"), "--dry-run"]
+    assert ablation.main(args) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "epoch count" in err and err.count("\n") == 1
+    assert benchmark.main([*args, "--epochs", "3", "--algos", "rdher"]) == 0
+    (ln,) = [x for x in capsys.readouterr().out.splitlines() if "(dry run)" in x]
+    assert "preset=fast" in ln and "seeds=3" in ln and "epochs=3" in ln
+
+
+@pytest.mark.parametrize("script", ["ablation.py", "benchmark.py", "report.py"])
+def test_help(script):
+    proc = subprocess.run([sys.executable, str(EXP / script), "--help"], capture_output=True,
+                          text=True, timeout=60)
+    assert proc.returncode == 0 and "usage: python experiments/" in proc.stdout
+
+
+def test_statistics():
+    assert report.t975(1) == 12.7062 and report.t975(4) == 2.7764
+    assert abs(report.t975(31) - 2.0395) < 1e-3 and abs(report.t975(1000) - 1.9623) < 1e-3
+    st = report.stat([0.5, 0.7, 0.9])
+    assert math.isclose(st.mean, 0.7) and math.isclose(st.std, 0.2)
+    half = 4.3027 * 0.2 / math.sqrt(3)
+    assert math.isclose(st.lo, 0.7 - half) and math.isclose(st.hi, 0.7 + half)
+    assert report.ci(st) == "[20.3, 100.0]"  # clipped to [0, 100]
+    one = report.stat([0.4])
+    assert one.n == 1 and math.isnan(one.std) and report.pm(one) == "40.0 (1 seed)"
+    assert report.hms(3 * 3600 + 53 * 60 + 16) == "03:53:16"
