@@ -145,6 +145,10 @@ class Config:
         1, "the actor is updated every policy_delay-th gradient step (TD3); 1: every step"
     )
     layer_norm: bool = _f(False, "LayerNorm in the critic's hidden layers")
+    n_step: int = _f(
+        1, "n-step returns: each sampled row sums n rewards (its own goal throughout, no "
+        "off-policy correction) before bootstrapping; 1: one-step (baselines)"
+    )
     terminal_on_success: bool = _f(
         False, "a transition that reaches its goal (reward 0) does not bootstrap: its target is "
         "0 (Fetch episodes end by time limit only, so this is off in the paper's setting)"
@@ -268,12 +272,15 @@ def validate(cfg: Config) -> Config:
         "cher_candidates",
         "cher_sample",
         "policy_delay",
+        "n_step",
     )
     for name in positive:
         v = getattr(cfg, name)
         _check(v is None or v >= 1, f"{name} must be a positive integer, got {v}")
     _check(cfg.replay_k >= 0, f"replay_k must be >= 0, got {cfg.replay_k}")
     _check(cfg.target_every >= 0, f"target_every must be >= 0, got {cfg.target_every}")
+    _check(cfg.n_step <= DEFAULT_HORIZON,
+           f"n_step must be <= the episode length {DEFAULT_HORIZON}, got {cfg.n_step}")
     _check(
         cfg.batch_size <= cfg.buffer_size,
         f"batch_size ({cfg.batch_size}) must not exceed buffer_size ({cfg.buffer_size})",

@@ -31,6 +31,7 @@ class Batch(Protocol):
     next_obs: jax.Array  # (B, obs_dim)
     next_goal: jax.Array  # (B, goal_dim)
     hindsight: jax.Array  # (B,) bool: goal is not the stored one (HER or DHER row)
+    discount: jax.Array | None  # (B,) bootstrap factor of n-step rows; None: gamma
 
 
 @struct.dataclass
@@ -117,6 +118,7 @@ def critic_target(
     hindsight: jax.Array,
     hparams: HParams,
     terminal: jax.Array | None = None,
+    discount: jax.Array | None = None,
 ) -> jax.Array:
     """Clipped, reward-weighted TD target y = clip(lam * r + gamma * q_next, -lam / (1 - gamma), 0).
 
@@ -130,6 +132,8 @@ def critic_target(
         hindsight: whether each row's goal was relabelled, (B,) bool.
         hparams: supplies lambda_r, lambda_h, gamma.
         terminal: optional (B,) bool; True rows do not bootstrap (y = lam * r).
+        discount: optional (B,) factor on q_next in place of gamma (n-step rows, whose reward
+            is already the discounted sum of n rewards); the clip range keeps gamma's bound.
 
     Returns:
         Targets (B,), with gradients stopped.
@@ -137,7 +141,7 @@ def critic_target(
     lam = jnp.where(hindsight, hparams.lambda_h, hparams.lambda_r)
     if terminal is not None:
         q_next = jnp.where(terminal, 0.0, q_next)
-    y = lam * reward + hparams.gamma * q_next
+    y = lam * reward + (hparams.gamma if discount is None else discount) * q_next
     y = jnp.clip(y, -lam / (1.0 - hparams.gamma), 0.0)
     return jax.lax.stop_gradient(y)
 
@@ -290,7 +294,8 @@ def make_ddpg(
         q_next = critic.apply(state.target_critic_params, next_obs, next_goal, next_action)
         # Rewards are -1 (goal not reached) or 0 (reached).
         terminal = batch.reward > -0.5 if terminal_on_success else None
-        y = critic_target(batch.reward, q_next, batch.hindsight, hparams, terminal)
+        y = critic_target(batch.reward, q_next, batch.hindsight, hparams, terminal,
+                          getattr(batch, "discount", None))
         q = critic.apply(critic_params, obs, goal, batch.action)
         return jnp.mean(jnp.square(q - y)), jnp.mean(q)
 

@@ -60,3 +60,20 @@ def test_fetch_reach_rdher_learns(tmp_path):
     best = max(float(r["test_success"]) for r in rows)
     assert best >= 0.9, [r["test_success"] for r in rows]
     assert np.isfinite([float(r["critic_loss"]) for r in rows]).all()
+
+
+@pytest.mark.parametrize("algo", ["her", "rdher"])
+def test_fast_preset_learner_options_train(tmp_path, algo):
+    """The optional learner changes (all at once: n-step, TD3 smoothing and delay, targets
+    inside the cycle, LayerNorm, terminal on success) compile and train with HER and RDHER."""
+    opts = dict(n_step=3, target_noise=0.2, policy_delay=2, target_every=2, polyak=0.99,
+                layer_norm=True, terminal_on_success=True)
+    cfg = resolve(Config(**{**TINY, **opts, "algo": algo, "run_dir": str(tmp_path / algo)}))
+    env, trainer = train_mod.build(cfg)
+    hp = trainer.hparams
+    ts = jax.jit(trainer.init)(jax.random.PRNGKey(0), hp)
+    ts, m = jax.jit(trainer.epoch)(ts, hp)
+    m = jax.device_get(m)
+    for name in ("critic_loss", "actor_loss", "q_mean"):
+        assert math.isfinite(float(getattr(m, name))), name
+    assert int(m.updates) == cfg.n_cycles * cfg.n_batches

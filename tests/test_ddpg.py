@@ -150,6 +150,12 @@ def test_critic_target_table():
     want = np.where(np.arange(len(table)) % 2 == 0, lam * table[:, 0], table[:, 3])
     np.testing.assert_allclose(np.asarray(y), want, rtol=1e-6, atol=1e-6)
 
+    # n-step rows bring their own discount; the clip range stays gamma's.
+    disc = jnp.full(len(table), 0.5, jnp.float32)
+    y = critic_target(reward, q_next, hindsight, h, None, disc)
+    want = np.clip(lam * table[:, 0] + 0.5 * table[:, 1], -lam / (1 - 0.9), 0.0)
+    np.testing.assert_allclose(np.asarray(y), want, rtol=1e-6, atol=1e-6)
+
 
 @jax.jit
 def _target_and_grad(reward, q_next, hindsight, h):

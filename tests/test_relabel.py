@@ -346,3 +346,70 @@ def test_reward_weights_apply_to_exactly_their_rows():
     y = np.asarray(critic_target(-jnp.ones(6), -jnp.ones(6), tr.hindsight, h))
     lam = np.where(np.asarray(source) == REAL, 3.0, 0.25)
     np.testing.assert_allclose(y, np.maximum(-lam - 0.5, -lam / 0.5))
+
+
+@pytest.mark.parametrize("n", [1, 3, 8])
+def test_n_step_matches_loop(n):
+    """n-step rows against a plain loop: rewards summed along the row's goal trajectory, the
+    bootstrap state m = min(n, T - t) steps on, discount gamma^m; n = 1 keeps one-step rows."""
+    rng = np.random.default_rng(6 + n)
+    T, cap, gamma, B = 6, 3, 0.9, 12
+    ep = random_episodes(rng, cap, T, 2)
+    buf = rb.add(rb.init(cap * T, T, OBS, D, ACT), ep)
+    src = np.arange(B) % 3
+    ep_idx = rng.integers(0, cap, B)
+    t = rng.integers(0, T, B)
+    t[:3] = T - 1  # rows at the episode's end, one per source
+    real = src == REAL
+    shift = np.where(real, 0, rng.integers(-3, 4, B))
+    goal_ep = np.where(real, ep_idx, rng.integers(0, cap, B))
+    goal = np.where((src == HER)[:, None], rng.integers(0, 2, (B, D)),
+                    ep.g[goal_ep, np.clip(t + shift, 0, T)]).astype(np.float32)
+    tr = relabel.Transition(
+        obs=jnp.asarray(ep.obs[ep_idx, t]), goal=jnp.asarray(goal),
+        action=jnp.asarray(ep.action[ep_idx, t]), reward=jnp.zeros(B),
+        next_obs=jnp.zeros((B, OBS)), next_goal=jnp.zeros((B, D)),
+        source=jnp.asarray(src, jnp.int32), ep=jnp.asarray(ep_idx, jnp.int32),
+        t=jnp.asarray(t, jnp.int32), goal_ep=jnp.asarray(goal_ep, jnp.int32),
+        goal_shift=jnp.asarray(shift, jnp.int32),
+    )
+    got = jax.jit(relabel.n_step, static_argnums=(2, 4))(buf, tr, n, jnp.float32(gamma),
+                                                           reward_fn)
+    for r in range(B):
+        e, t0, s = int(ep_idx[r]), int(t[r]), int(src[r])
+
+        def goal_at(k, r=r, s=s):  # the goal in force at step k of episode e
+            if s == HER:
+                return goal[r]
+            return ep.g[int(goal_ep[r]), min(max(k + int(shift[r]), 0), T)]
+
+        m = min(n, T - t0)
+        want = sum(gamma**j * reward_np(ep.ag[e, t0 + j + 1], goal_at(t0 + j + 1))
+                   for j in range(m))
+        assert float(got.reward[r]) == pytest.approx(want, abs=1e-5)
+        np.testing.assert_array_equal(np.asarray(got.next_obs[r]), ep.obs[e, t0 + m])
+        np.testing.assert_array_equal(np.asarray(got.next_goal[r]), goal_at(t0 + m))
+        assert float(got.discount[r]) == pytest.approx(gamma**m, rel=1e-6)
+    # Obs, goal, action and indices are untouched.
+    for f in ("obs", "goal", "action", "source", "ep", "t", "goal_ep", "goal_shift"):
+        np.testing.assert_array_equal(np.asarray(getattr(got, f)), np.asarray(getattr(tr, f)))
+
+
+def test_n_step_one_equals_sampled_rows():
+    """n = 1 reproduces what each relabeller's own gather computed, for real, HER and DHER
+    rows drawn from a real DHER sample."""
+    rng = np.random.default_rng(11)
+    cap, T = 8, 5
+    f, update, _, add = dher_fns(cap, T, 4, 4)
+    buf, state = rb.init(cap * T, T, OBS, D, ACT), f.init()
+    for _ in range(2):
+        buf = add(buf, random_episodes(rng, 4, T, 2))
+        state = update(state, buf, PARAMS)
+    params = relabel.RelabelParams.default(relabel_prob=0.5, dher_fraction=0.5, dher_tol=TOL)
+    _, tr = jax.jit(f.sample)(jax.random.key(0), state, buf, params, jnp.int32(0))
+    assert {0, 1, 2} <= set(np.asarray(tr.source).tolist())
+    got = relabel.n_step(buf, tr, 1, jnp.float32(0.9), reward_fn)
+    for name in ("reward", "next_obs", "next_goal"):
+        np.testing.assert_array_equal(np.asarray(getattr(got, name)),
+                                      np.asarray(getattr(tr, name)), err_msg=name)
+    np.testing.assert_allclose(np.asarray(got.discount), 0.9, rtol=1e-6)

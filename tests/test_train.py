@@ -279,7 +279,8 @@ def test_target_every_moves_targets_inside_the_cycle(tmp_path):
         return ts0.ddpg, ts.ddpg
 
     def same(a, b):
-        return all(np.array_equal(x, y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
+        return all(np.array_equal(x, y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b),
+                                                        strict=True))
 
     start, end = one_cycle()  # baselines: one update after the cycle
     assert same(end.target_critic_params, end.critic_params)

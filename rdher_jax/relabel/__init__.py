@@ -152,6 +152,40 @@ def observed_return(buffer: BufferState, batch: Transition, compute_reward: Rewa
     return jnp.sum(jnp.where(live, disc * r, 0.0), axis=-1)
 
 
+def n_step(buffer: BufferState, batch: Transition, n: int, gamma: jax.Array,
+           compute_reward: RewardFn) -> Transition:
+    """The n-step version of each row: ``n`` rewards summed, then one bootstrap.
+
+    Row (ep, t) with its goal becomes ``R = sum_{k<m} gamma^k r(ag[ep, t+k+1], goal_{t+k+1})``,
+    ``next_obs = o[ep, t+m]``, ``next_goal = goal_{t+m}`` and ``discount = gamma^m``, where
+    ``m = min(n, T - t)`` (no step past the episode's end). The goal follows the row as in
+    :func:`observed_return`: fixed for HER rows, the stored goals for real rows and the
+    goal-providing episode's (held at its ends) for DHER rows. The actions after ``t`` are the
+    behaviour policy's: the return is not corrected for being off-policy. ``n = 1`` gives the
+    one-step row back (with ``discount = gamma``).
+
+    Returns:
+        The batch with reward, next_obs, next_goal and discount replaced.
+    """
+    T = buffer.horizon
+    k = jnp.arange(n, dtype=jnp.int32)[None, :]  # (1, n)
+    step = batch.t[:, None] + k  # (B, n): the transition t+k
+    live = step < T
+    m = jnp.sum(live, axis=-1).astype(jnp.int32)  # min(n, T - t) >= 1
+    s1 = jnp.minimum(step + 1, T)
+    traj = buffer.g[batch.goal_ep[:, None], jnp.clip(s1 + batch.goal_shift[:, None], 0, T)]
+    goal = jnp.where((batch.source == HER)[:, None, None], batch.goal[:, None, :], traj)
+    r = compute_reward(buffer.ag[batch.ep[:, None], s1], goal).astype(jnp.float32)
+    disc = gamma ** k.astype(jnp.float32)
+    rows = jnp.arange(batch.t.shape[0])
+    return batch.replace(
+        reward=jnp.sum(jnp.where(live, disc * r, 0.0), axis=-1),
+        next_obs=buffer.obs[batch.ep, batch.t + m],
+        next_goal=goal[rows, m - 1],
+        discount=(gamma ** m.astype(jnp.float32)).astype(jnp.float32),
+    )
+
+
 __all__ = ["DHER", "HER", "REAL", "SOURCE_NAMES", "STRATEGIES", "RelabelParams", "Relabeller",
-           "Transition", "make_relabeller", "observed_return", "params_from_config",
+           "Transition", "make_relabeller", "n_step", "observed_return", "params_from_config",
            "relabel_prob_from_k", "sample_episodes", "sample_her"]

@@ -46,8 +46,11 @@ class Transition:
         goal_shift: ``(batch,)`` int32: at step ``k`` of episode ``ep`` the row's goal is
             ``g[goal_ep, k + goal_shift]`` (0 for real rows; unused for HER rows).
 
-    The last four fields let diagnostics follow a row's goal through its stored episode
-    (``rdher_jax.relabel.observed_return``); the learner reads only the first seven.
+        discount: ``(batch,)`` float32 factor on the bootstrapped value, or ``None`` for
+            ``gamma`` (one-step rows); set by ``rdher_jax.relabel.n_step``.
+
+    The four index fields let diagnostics follow a row's goal through its stored episode
+    (``rdher_jax.relabel.observed_return``); the learner reads the first seven and discount.
     """
 
     obs: jax.Array
@@ -61,6 +64,7 @@ class Transition:
     t: jax.Array
     goal_ep: jax.Array
     goal_shift: jax.Array
+    discount: jax.Array | None = None
 
     @property
     def hindsight(self) -> jax.Array:
