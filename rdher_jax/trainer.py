@@ -175,7 +175,8 @@ def make_trainer(cfg, env) -> Trainer:
             k_sample, k_update = jax.random.split(k)
             rs, batch = relabeller.sample(k_sample, rs, buf, hp.relabel, step0 + i)
             if cfg.n_step > 1:
-                batch = relabel.n_step(buf, batch, cfg.n_step, hp.ddpg.gamma, env.compute_reward)
+                batch = relabel.n_step(buf, batch, cfg.n_step, hp.ddpg.gamma, env.compute_reward,
+                                       stop_at_success=cfg.terminal_on_success)
             ds, m = agent.update(ds, batch, hp.ddpg, k_update, ts.updates + i)
             if cfg.target_every:
                 ds = agent.target_update(ds, hp.ddpg, (ts.updates + i + 1) % cfg.target_every == 0)

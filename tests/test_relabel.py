@@ -348,8 +348,9 @@ def test_reward_weights_apply_to_exactly_their_rows():
     np.testing.assert_allclose(y, np.maximum(-lam - 0.5, -lam / 0.5))
 
 
+@pytest.mark.parametrize("stop", [False, True])
 @pytest.mark.parametrize("n", [1, 3, 8])
-def test_n_step_matches_loop(n):
+def test_n_step_matches_loop(n, stop):
     """n-step rows against a plain loop: rewards summed along the row's goal trajectory, the
     bootstrap state m = min(n, T - t) steps on, discount gamma^m; n = 1 keeps one-step rows."""
     rng = np.random.default_rng(6 + n)
@@ -373,8 +374,9 @@ def test_n_step_matches_loop(n):
         t=jnp.asarray(t, jnp.int32), goal_ep=jnp.asarray(goal_ep, jnp.int32),
         goal_shift=jnp.asarray(shift, jnp.int32),
     )
-    got = jax.jit(relabel.n_step, static_argnums=(2, 4))(buf, tr, n, jnp.float32(gamma),
-                                                           reward_fn)
+    got = jax.jit(relabel.n_step, static_argnums=(2, 4, 5))(buf, tr, n, jnp.float32(gamma),
+                                                              reward_fn, stop)
+    ended = 0
     for r in range(B):
         e, t0, s = int(ep_idx[r]), int(t[r]), int(src[r])
 
@@ -383,13 +385,18 @@ def test_n_step_matches_loop(n):
                 return goal[r]
             return ep.g[int(goal_ep[r]), min(max(k + int(shift[r]), 0), T)]
 
-        m = min(n, T - t0)
-        want = sum(gamma**j * reward_np(ep.ag[e, t0 + j + 1], goal_at(t0 + j + 1))
-                   for j in range(m))
+        want, m, done = 0.0, 0, False
+        while m < min(n, T - t0) and not done:
+            rew = reward_np(ep.ag[e, t0 + m + 1], goal_at(t0 + m + 1))
+            want += gamma**m * rew
+            m += 1
+            done = stop and rew == 0
+        ended += done
         assert float(got.reward[r]) == pytest.approx(want, abs=1e-5)
         np.testing.assert_array_equal(np.asarray(got.next_obs[r]), ep.obs[e, t0 + m])
         np.testing.assert_array_equal(np.asarray(got.next_goal[r]), goal_at(t0 + m))
-        assert float(got.discount[r]) == pytest.approx(gamma**m, rel=1e-6)
+        assert float(got.discount[r]) == pytest.approx(0.0 if done else gamma**m, rel=1e-6)
+    assert ended > 0 or not stop or n == 1  # the stop is exercised
     # Obs, goal, action and indices are untouched.
     for f in ("obs", "goal", "action", "source", "ep", "t", "goal_ep", "goal_shift"):
         np.testing.assert_array_equal(np.asarray(getattr(got, f)), np.asarray(getattr(tr, f)))

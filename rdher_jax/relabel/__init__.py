@@ -153,7 +153,7 @@ def observed_return(buffer: BufferState, batch: Transition, compute_reward: Rewa
 
 
 def n_step(buffer: BufferState, batch: Transition, n: int, gamma: jax.Array,
-           compute_reward: RewardFn) -> Transition:
+           compute_reward: RewardFn, stop_at_success: bool = False) -> Transition:
     """The n-step version of each row: ``n`` rewards summed, then one bootstrap.
 
     Row (ep, t) with its goal becomes ``R = sum_{k<m} gamma^k r(ag[ep, t+k+1], goal_{t+k+1})``,
@@ -163,6 +163,9 @@ def n_step(buffer: BufferState, batch: Transition, n: int, gamma: jax.Array,
     goal-providing episode's (held at its ends) for DHER rows. The actions after ``t`` are the
     behaviour policy's: the return is not corrected for being off-policy. ``n = 1`` gives the
     one-step row back (with ``discount = gamma``).
+
+    With ``stop_at_success`` (for ``terminal_on_success``) a row ends at the first step whose
+    reward is 0: the sum stops there and ``discount`` is 0, so it does not bootstrap.
 
     Returns:
         The batch with reward, next_obs, next_goal and discount replaced.
@@ -176,13 +179,21 @@ def n_step(buffer: BufferState, batch: Transition, n: int, gamma: jax.Array,
     traj = buffer.g[batch.goal_ep[:, None], jnp.clip(s1 + batch.goal_shift[:, None], 0, T)]
     goal = jnp.where((batch.source == HER)[:, None, None], batch.goal[:, None, :], traj)
     r = compute_reward(buffer.ag[batch.ep[:, None], s1], goal).astype(jnp.float32)
+    discount = gamma ** m.astype(jnp.float32)
+    if stop_at_success:
+        success = live & (r > -0.5)
+        # Live up to and including the first success.
+        before = jnp.cumsum(success, axis=-1) - success
+        live = live & (before == 0)
+        m = jnp.sum(live, axis=-1).astype(jnp.int32)
+        discount = jnp.where(jnp.any(success & live, axis=-1), 0.0, gamma ** m.astype(jnp.float32))
     disc = gamma ** k.astype(jnp.float32)
     rows = jnp.arange(batch.t.shape[0])
     return batch.replace(
         reward=jnp.sum(jnp.where(live, disc * r, 0.0), axis=-1),
         next_obs=buffer.obs[batch.ep, batch.t + m],
         next_goal=goal[rows, m - 1],
-        discount=(gamma ** m.astype(jnp.float32)).astype(jnp.float32),
+        discount=discount.astype(jnp.float32),
     )
 
 
