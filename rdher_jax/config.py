@@ -38,6 +38,7 @@ PAPER_LAMBDAS: dict[str, tuple[float, float]] = {
 WEIGHTED_ALGOS: tuple[str, ...] = ("archer", "rdher")
 BACKENDS: tuple[str, ...] = ("auto", "mujoco", "mjx")
 SCENES: tuple[str, ...] = ("auto", "original", "mjx")
+TERMINAL_RULES: tuple[str, ...] = ("none", "success", "exact")
 
 # Every Fetch task has 50-step episodes; gamma defaults to 1 - 1/T as in baselines' HER.
 DEFAULT_HORIZON = 50
@@ -84,7 +85,7 @@ PRESETS: dict[str, Preset] = {
             "polyak": 0.99,
             "target_noise": 0.2,
             "policy_delay": 2,
-            "terminal_on_success": True,
+            "terminal": "success",
         },
     ),
 }
@@ -156,9 +157,11 @@ class Config:
         1, "n-step returns: each sampled row sums n rewards (its own goal throughout, no "
         "off-policy correction) before bootstrapping; 1: one-step (baselines)"
     )
-    terminal_on_success: bool = _f(
-        False, "a transition that reaches its goal (reward 0) does not bootstrap: its target is "
-        "0 (Fetch episodes end by time limit only, so this is off in the paper's setting)"
+    terminal: str = _f(
+        "none", "which transitions do not bootstrap: none (Fetch episodes end by time limit "
+        "only: the paper's setting), success (a transition that reaches its goal, reward 0), "
+        "exact (a transition whose goal is exactly the next achieved goal: HER rows relabelled "
+        "with the very next step, DRLib's rule)"
     )
     replay_k: int = _f(4, "HER ratio: goals are relabelled with probability 1 - 1/(1 + k)")
     lambda_r: float | None = _f(
@@ -261,6 +264,8 @@ def validate(cfg: Config) -> Config:
     _one_of("algo", cfg.algo, ALGO_NAMES)
     _one_of("backend", cfg.backend, BACKENDS)
     _one_of("scene", cfg.scene, SCENES)
+    _one_of("terminal", cfg.terminal, TERMINAL_RULES)
+    _check(cfg.terminal != "exact" or cfg.n_step == 1, "terminal=exact needs n_step=1")
     if cfg.preset is not None:
         _one_of("preset", cfg.preset, tuple(PRESETS))
     _check(0 <= cfg.seed < 2**32, f"seed must be in [0, 2**32), got {cfg.seed}")

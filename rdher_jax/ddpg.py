@@ -177,7 +177,6 @@ def make_ddpg(
     noise_clip: float = 0.5,
     policy_delay: int = 1,
     layer_norm: bool = False,
-    terminal_on_success: bool = False,
 ) -> DDPG:
     """Builds the DDPG functions for fixed dimensions and architecture.
 
@@ -196,10 +195,6 @@ def make_ddpg(
         policy_delay: the actor is updated on every policy_delay-th gradient step (TD3's
             delayed policy update); 1 (baselines) updates it on every step.
         layer_norm: LayerNorm in the critic's hidden layers.
-        terminal_on_success: a transition whose reward says the goal was reached does not
-            bootstrap (its target is its reward, 0). Fetch episodes end by time limit only, so
-            this treats reaching the goal as the end of the task; off in baselines.
-
     Returns:
         A DDPG of pure, jittable functions.
     """
@@ -292,9 +287,7 @@ def make_ddpg(
             eps = jnp.clip(eps, -noise_clip * max_u, noise_clip * max_u)
             next_action = jnp.clip(next_action + eps, -max_u, max_u)
         q_next = critic.apply(state.target_critic_params, next_obs, next_goal, next_action)
-        # Rewards are -1 (goal not reached) or 0 (reached).
-        terminal = batch.reward > -0.5 if terminal_on_success else None
-        y = critic_target(batch.reward, q_next, batch.hindsight, hparams, terminal,
+        y = critic_target(batch.reward, q_next, batch.hindsight, hparams, None,
                           getattr(batch, "discount", None))
         q = critic.apply(critic_params, obs, goal, batch.action)
         return jnp.mean(jnp.square(q - y)), jnp.mean(q)

@@ -104,7 +104,6 @@ def make_trainer(cfg, env) -> Trainer:
         obs_dim, goal_dim, act_dim, hidden=(cfg.hidden,) * cfg.layers,
         target_noise=cfg.target_noise, noise_clip=cfg.noise_clip,
         policy_delay=cfg.policy_delay, layer_norm=cfg.layer_norm,
-        terminal_on_success=cfg.terminal_on_success,
     )
     n_envs, n_test = cfg.num_envs, cfg.n_test_rollouts
     v_reset, v_step = jax.vmap(env.reset), jax.vmap(env.step)
@@ -176,7 +175,9 @@ def make_trainer(cfg, env) -> Trainer:
             rs, batch = relabeller.sample(k_sample, rs, buf, hp.relabel, step0 + i)
             if cfg.n_step > 1:
                 batch = relabel.n_step(buf, batch, cfg.n_step, hp.ddpg.gamma, env.compute_reward,
-                                       stop_at_success=cfg.terminal_on_success)
+                                       stop_at_success=cfg.terminal == "success")
+            else:
+                batch = relabel.with_terminal(buf, batch, cfg.terminal, hp.ddpg.gamma)
             ds, m = agent.update(ds, batch, hp.ddpg, k_update, ts.updates + i)
             if cfg.target_every:
                 ds = agent.target_update(ds, hp.ddpg, (ts.updates + i + 1) % cfg.target_every == 0)

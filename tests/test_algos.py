@@ -62,12 +62,13 @@ def test_fetch_reach_rdher_learns(tmp_path):
     assert np.isfinite([float(r["critic_loss"]) for r in rows]).all()
 
 
-@pytest.mark.parametrize("algo", ["her", "rdher"])
-def test_fast_preset_learner_options_train(tmp_path, algo):
+@pytest.mark.parametrize("algo,terminal", [("her", "success"), ("rdher", "success"),
+                                           ("her", "exact")])
+def test_fast_preset_learner_options_train(tmp_path, algo, terminal):
     """The optional learner changes (all at once: n-step, TD3 smoothing and delay, targets
     inside the cycle, LayerNorm, terminal on success) compile and train with HER and RDHER."""
-    opts = dict(n_step=3, target_noise=0.2, policy_delay=2, target_every=2, polyak=0.99,
-                layer_norm=True, terminal_on_success=True)
+    opts = dict(n_step=3 if terminal != "exact" else 1, target_noise=0.2, policy_delay=2,
+                target_every=2, polyak=0.99, layer_norm=True, terminal=terminal)
     cfg = resolve(Config(**{**TINY, **opts, "algo": algo, "run_dir": str(tmp_path / algo)}))
     env, trainer = train_mod.build(cfg)
     hp = trainer.hparams

@@ -440,23 +440,3 @@ def test_layer_norm_critic():
     np.testing.assert_allclose(d.critic.apply(scaled, o, g, a), d.critic.apply(s.critic_params,
                                o, g, a), rtol=1e-4, atol=1e-5)
 
-
-def test_terminal_on_success_stops_bootstrapping_on_reached_goals():
-    d = make_ddpg(OBS, GOAL, ACT, hidden=(8, 8), max_u=MAX_U, clip_obs=CLIP_OBS,
-                  norm_eps=NORM_EPS, norm_clip=NORM_CLIP, terminal_on_success=True)
-    h = HParams.default()
-    state = _state(h, _batch(4))
-    batch = _batch(8)
-    obs, goal = normalise(state, batch.next_obs, batch.next_goal)
-    o, g = normalise(state, batch.obs, batch.goal)
-    pi = _np_actor(state.target_actor_params, np.asarray(obs), np.asarray(goal), MAX_U)
-    q_next = _np_critic(state.target_critic_params, np.asarray(obs), np.asarray(goal), pi, MAX_U)
-    reward = np.asarray(batch.reward)
-    y = np.clip(reward + 0.98 * np.where(reward == 0, 0.0, q_next), -50, 0)
-    q = _np_critic(state.critic_params, np.asarray(o), np.asarray(g), np.asarray(batch.action),
-                   MAX_U)
-    assert (reward == 0).any() and (reward == -1).any()
-    loss = float(d.critic_loss(state.critic_params, state, batch, h)[0])
-    assert loss == pytest.approx(np.mean((q - y) ** 2), rel=1e-4)
-    assert loss != pytest.approx(float(D.critic_loss(state.critic_params, state, batch, h)[0]),
-                                 rel=1e-4)

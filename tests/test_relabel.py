@@ -420,3 +420,41 @@ def test_n_step_one_equals_sampled_rows():
         np.testing.assert_array_equal(np.asarray(getattr(got, name)),
                                       np.asarray(getattr(tr, name)), err_msg=name)
     np.testing.assert_allclose(np.asarray(got.discount), 0.9, rtol=1e-6)
+
+
+def test_terminal_rules_set_discount_zero_on_exactly_their_rows():
+    rng = np.random.default_rng(3)
+    T, cap, B = 6, 3, 40
+    ep = random_episodes(rng, cap, T, 2)
+    buf = rb.add(rb.init(cap * T, T, OBS, D, ACT), ep)
+    e = rng.integers(0, cap, B)
+    t = rng.integers(0, T, B)
+    ag1 = ep.ag[e, t + 1]
+    # Rows take the very next achieved goal (reward 0, 'exact'), a goal near it (reward 0, not
+    # exact) or one far from it (reward -1), in turn.
+    near = ag1 + rng.uniform(-0.2, 0.2, (B, D))
+    far = ag1 + 2.0
+    goal = np.choose((np.arange(B) % 3)[:, None], [ag1, near, far]).astype(np.float32)
+    reward = reward_np(ag1, goal)
+    tr = relabel.Transition(
+        obs=jnp.zeros((B, OBS)), goal=jnp.asarray(goal), action=jnp.zeros((B, ACT)),
+        reward=jnp.asarray(reward), next_obs=jnp.zeros((B, OBS)), next_goal=jnp.asarray(goal),
+        source=jnp.full(B, HER, jnp.int32), ep=jnp.asarray(e, jnp.int32),
+        t=jnp.asarray(t, jnp.int32), goal_ep=jnp.asarray(e, jnp.int32),
+        goal_shift=jnp.zeros(B, jnp.int32),
+    )
+    g = jnp.float32(0.9)
+    assert relabel.with_terminal(buf, tr, "none", g) is tr
+    exact = np.all(goal == ag1, axis=-1)
+    success = reward == 0
+    assert exact.sum() < success.sum()  # the two rules differ on this batch
+    for rule, want in (("exact", exact), ("success", success)):
+        got = np.asarray(relabel.with_terminal(buf, tr, rule, g).discount)
+        np.testing.assert_allclose(got, np.where(want, 0.0, 0.9), rtol=1e-6)
+    # Terminal rows' targets are their rewards: the critic target honours the discount.
+    h = HParams.default(gamma=0.9)
+    y = critic_target(tr.reward, jnp.full(B, -3.0), tr.hindsight, h, None,
+                      relabel.with_terminal(buf, tr, "success", g).discount)
+    np.testing.assert_allclose(np.asarray(y), np.where(success, 0.0, -1.0 - 2.7), rtol=1e-6)
+    with pytest.raises(ValueError, match="unknown terminal rule"):
+        relabel.with_terminal(buf, tr, "sometimes", g)

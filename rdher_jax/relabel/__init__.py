@@ -27,6 +27,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from rdher_jax.buffer import BufferState
+from rdher_jax.config import TERMINAL_RULES
 from rdher_jax.relabel.her import (
     DHER,
     HER,
@@ -164,7 +165,7 @@ def n_step(buffer: BufferState, batch: Transition, n: int, gamma: jax.Array,
     behaviour policy's: the return is not corrected for being off-policy. ``n = 1`` gives the
     one-step row back (with ``discount = gamma``).
 
-    With ``stop_at_success`` (for ``terminal_on_success``) a row ends at the first step whose
+    With ``stop_at_success`` (for ``terminal=success``) a row ends at the first step whose
     reward is 0: the sum stops there and ``discount`` is 0, so it does not bootstrap.
 
     Returns:
@@ -197,6 +198,28 @@ def n_step(buffer: BufferState, batch: Transition, n: int, gamma: jax.Array,
     )
 
 
+def with_terminal(buffer: BufferState, batch: Transition, rule: str,
+                  gamma: jax.Array) -> Transition:
+    """Marks rows that do not bootstrap by giving them ``discount = 0``.
+
+    ``rule``: ``"none"`` (Fetch episodes end by time limit only: every row bootstraps),
+    ``"success"`` (a row whose reward is 0, i.e. whose goal was reached), or ``"exact"`` (a row
+    whose goal at ``t+1`` equals the achieved goal at ``t+1`` exactly: the HER rows relabelled
+    with the very next achieved goal, as in DRLib's HER, and nothing else in practice). Applies
+    to one-step rows; ``n_step`` handles ``"success"`` itself.
+    """
+    if rule == "none":
+        return batch
+    if rule == "success":
+        term = batch.reward > -0.5  # rewards are -1 (not reached) or 0 (reached)
+    elif rule == "exact":
+        term = jnp.all(batch.next_goal == buffer.ag[batch.ep, batch.t + 1], axis=-1)
+    else:
+        raise ValueError(f"unknown terminal rule {rule!r}; valid: {', '.join(TERMINAL_RULES)}")
+    discount = gamma if batch.discount is None else batch.discount
+    return batch.replace(discount=jnp.where(term, 0.0, discount).astype(jnp.float32))
+
+
 __all__ = ["DHER", "HER", "REAL", "SOURCE_NAMES", "STRATEGIES", "RelabelParams", "Relabeller",
            "Transition", "make_relabeller", "n_step", "observed_return", "params_from_config",
-           "relabel_prob_from_k", "sample_episodes", "sample_her"]
+           "relabel_prob_from_k", "sample_episodes", "sample_her", "with_terminal"]
