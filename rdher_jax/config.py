@@ -74,8 +74,9 @@ PRESETS: dict[str, Preset] = {
     "fast": Preset(
         "learn FetchPush within an hour on a 2-core CPU: one episode then 40 gradient steps per "
         "cycle (0.8 per env step) on 2x256 networks; TD3's target smoothing and delayed actor, "
-        "target networks moved by 1% every 2nd step, no action penalty; a transition that "
-        "reaches its goal does not bootstrap. Changes the algorithm: see README, 'preset=fast'",
+        "target networks moved by 1% every 2nd step, no action penalty; a HER transition "
+        "relabelled with the very next achieved goal does not bootstrap. Changes the algorithm: "
+        "see README, 'preset=fast'",
         {
             "num_envs": 1,
             "n_batches": 40,
@@ -85,7 +86,7 @@ PRESETS: dict[str, Preset] = {
             "polyak": 0.99,
             "target_noise": 0.2,
             "policy_delay": 2,
-            "terminal": "success",
+            "terminal": "exact",
         },
     ),
 }
