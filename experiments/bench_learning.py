@@ -65,9 +65,40 @@ def fmt(hit: dict | None, key: str) -> str:
     return f"{h['env_steps']:,} steps, {h['wall_s'] / 60:.1f} min"
 
 
+def summary(out: Path, window: int) -> str:
+    """One table over every setting benchmarked in ``out`` (``<name>.json`` files): what each
+    changes from the defaults, and per seed the env steps and minutes to 0.5 and 0.9."""
+    lines = [
+        "# Learning speed on FetchPush: every setting measured",
+        "",
+        "Rows are written by `python experiments/bench_learning.py --summary` from the "
+        "`<name>.json` files beside this one; each setting's own `<name>.md`, CSVs and curves "
+        f"are there too. 'mean of {window}': the first epoch whose trailing mean of {window} "
+        "test evaluations (10 episodes each) reaches the threshold. Minutes are wall clock from "
+        "the start of training, compilation included.",
+        "",
+        "| setting | keys | seed | env steps run | best | to 0.5 | to 0.9 | "
+        f"to 0.9, mean of {window} |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for path in sorted(out.glob("*.json")):
+        d = json.loads(path.read_text())
+        keys = " ".join(k for k in d["settings"] if not k.startswith(("env=", "epochs=")))
+        for seed, r in sorted(d["results"].items(), key=lambda kv: int(kv[0])):
+            h5, h9 = r["hits"]["0.5"], r["hits"]["0.9"]
+            lines.append(
+                f"| {path.stem} | `{keys}` | {seed} | {r['env_steps']:,} | {r['best']:.2f} | "
+                f"{fmt(h5, 'single')} | {fmt(h9, 'single')} | {fmt(h9, 'window')} |")
+    text = "\n".join(lines) + "\n"
+    (out / "summary.md").write_text(text)
+    return text
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--name", required=True, help="name of this setting (file names)")
+    ap.add_argument("--name", help="name of this setting (file names)")
+    ap.add_argument("--summary", action="store_true",
+                    help="write summary.md over every setting in --out, train nothing")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--window", type=int, default=3)
     ap.add_argument("--runs-dir", default="runs/bench_learning")
@@ -79,6 +110,11 @@ def main() -> None:
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    if args.summary:
+        print(summary(out, args.window))
+        return
+    if not args.name:
+        ap.error("--name is required (or --summary)")
     results = {}
     for seed in args.seeds:
         run_dir = Path(args.runs_dir) / f"{args.name}-s{seed}"
