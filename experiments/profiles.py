@@ -9,9 +9,8 @@ experiment). The profile's name, doc and the task's budget are written into ever
   seeds. A smoke test of the whole pipeline (the tests run it); learns nothing.
 - ``cpu``: what a 2-core CPU finishes. FetchReach at the paper's learner settings (Table 1), 5
   seeds, 5 epochs of 10 cycles (5,000 env steps per run, the default of ``python -m
-  rdher_jax.train`` for Reach, where HER and RDHER reach 0.9-1.0 test success). FetchPush:
-  :data:`PUSH_CPU`, a placeholder whose epoch count the maintainer sets; until then the cpu
-  profile refuses FetchPush unless ``--epochs`` is given.
+  rdher_jax.train`` for Reach, where HER and RDHER reach 0.9-1.0 test success). FetchPush
+  (``--tasks FetchPush``): :data:`PUSH_CPU`, ``preset=fast`` for 500,000 env steps, 3 seeds.
 - ``paper``: the paper's budget, for a GPU: every task, Table 1's settings, 5 seeds, 50 epochs
   (10 cycles each for Reach, 50 for the others). The paper does not state its epoch counts; 50 is
   ``n_epochs``'s default in the code it builds on (openai/baselines ``her/experiment/train.py``,
@@ -88,21 +87,20 @@ TINY = Budget(2, {"epochs": 2, "n_cycles": 2, "n_batches": 4, "batch_size": 32,
               "smoke test of the pipeline; learns nothing")
 REACH_CPU = Budget(5, {"epochs": 5, "n_cycles": 10, **PAPER_LEARNER},
                    "the paper's learner; 5 epochs (5,000 env steps per run) in place of its 50")
-# PLACEHOLDER, for the maintainer to decide: FetchPush on a 2-core CPU. preset=fast (one episode
-# and 40 updates per cycle, target networks every 2nd update by 0.99) and 3 seeds; the epoch
-# count is not set, so the cpu profile refuses FetchPush until it is (or --epochs is given).
-# For sizing: one fast FetchPush epoch of one run took 7.6 s in experiments/results/bench_learning
-# (400 epochs in 50.8 min), so one epoch of the whole Push set (7 x 3 ablation runs and 5 x 3
-# benchmark runs, DHER/CHER dearer) is about 5 minutes on this CPU, by that estimate.
-PUSH_CPU = Budget(3, {"preset": "fast", "epochs": None},
-                  "PLACEHOLDER: FetchPush cpu budget, epoch count to be decided",
-                  placeholder=True)
+# FetchPush on a 2-core CPU: preset=fast (see the README, 'preset=fast'), 3 seeds, 200 epochs
+# of 50 one-episode cycles = 500,000 env steps per run, where preset=fast has reached test success
+# 0.9 (experiments/results/bench_learning/summary.md). One run takes about 20 minutes of one
+# core and vmapping seeds saves no arithmetic on a CPU, so a setting of 3 seeds is about an hour
+# of the machine: the benchmark's HER, DHER and RDHER about 3 hours, the 7-setting ablation
+# about 7; both resume where they stopped, so they can be finished over several sittings.
+PUSH_CPU = Budget(3, {"preset": "fast", "epochs": 200},
+                  "preset=fast, 200 epochs of 50 one-episode cycles (500,000 env steps per run)")
 
 PROFILES: dict[str, Profile] = {
     "tiny": Profile("FetchReach smoke test: 2 epochs of 2 cycles, tiny networks, 2 seeds",
                     {"FetchReach": TINY}, ("FetchReach",)),
     "cpu": Profile("what a 2-core CPU finishes: FetchReach at the paper's settings for 5 epochs, "
-                   "5 seeds; FetchPush a placeholder (preset=fast, 3 seeds, epochs unset)",
+                   "5 seeds; FetchPush (--tasks FetchPush) preset=fast for 200 epochs, 3 seeds",
                    {"FetchReach": REACH_CPU, "FetchPush": PUSH_CPU}, ("FetchReach",)),
     "paper": Profile(
         "the paper's budget for a GPU: Table 1's settings, 50 epochs (Reach 10 cycles each, "

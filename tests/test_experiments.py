@@ -168,15 +168,15 @@ def test_dry_run_plans_every_algorithm_and_task(tmp_path, capsys):
     assert not (tmp_path / "out").exists() and not (tmp_path / "runs").exists()
 
 
-def test_cpu_push_is_a_placeholder_until_its_epochs_are_set(tmp_path, capsys):
+def test_cpu_push_budget_is_preset_fast(tmp_path, capsys):
     args = ["--profile", "cpu", "--tasks", "FetchPush", "--out", str(tmp_path / "out"),
             "--runs-dir", str(tmp_path / "runs"), "--dry-run"]
-    assert ablation.main(args) == 2
-    err = capsys.readouterr().err
-    assert err.startswith("error: ") and "epoch count" in err and err.count("\n") == 1
+    assert benchmark.main([*args, "--algos", "rdher"]) == 0
+    (ln,) = [x for x in capsys.readouterr().out.splitlines() if "(dry run)" in x]
+    assert "preset=fast" in ln and "seeds=3" in ln and "epochs=200" in ln
     assert benchmark.main([*args, "--epochs", "3", "--algos", "rdher"]) == 0
     (ln,) = [x for x in capsys.readouterr().out.splitlines() if "(dry run)" in x]
-    assert "preset=fast" in ln and "seeds=3" in ln and "epochs=3" in ln
+    assert "epochs=3" in ln
 
 
 @pytest.mark.parametrize("script", ["ablation.py", "benchmark.py", "report.py"])
