@@ -1,0 +1,113 @@
+"""Where a training cycle's time goes, for the default settings and for a preset, side by side.
+
+    python experiments/bench_cycle.py                       # FetchPush, default vs preset=fast
+    python experiments/bench_cycle.py --env FetchPush --repeats 30
+
+A cycle is a rollout of ``num_envs`` episodes (host physics through one callback per step),
+``n_batches`` sampled gradient steps and the target update. Timing the jitted cycle at the
+setting's ``n_batches`` and at ``n_batches=1`` separates the two: the one-batch cycle is almost
+all rollout (and store), and the difference divided by ``n_batches - 1`` is one sampled update.
+The rollout's share is what overlapping host physics with the learner could save at most.
+Settings are timed interleaved (A, B, A, B, ...) and medians reported, since this machine's
+speed drifts. Writes ``experiments/results/bench_cycle.md`` and ``.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import statistics
+import time
+from pathlib import Path
+
+import jax
+
+from rdher_jax import train as train_mod
+from rdher_jax.config import parse_args, resolve
+
+HERE = Path(__file__).resolve().parent
+
+
+def cycle_fn(settings: list[str]):
+    """A jitted cycle and a filled-in TrainState for the given ``key=value`` settings."""
+    cfg = resolve(parse_args([*settings, "run_dir=/tmp/bench_cycle_unused", "progress=false"]))
+    _, trainer = train_mod.build(cfg)
+    hp = trainer.hparams
+    cycle = jax.jit(trainer.cycle)
+    ts = jax.jit(trainer.init)(jax.random.PRNGKey(0), hp)
+    for _ in range(3):  # compile, and put a few episodes in the buffer
+        ts, m = cycle(ts, hp)
+    jax.block_until_ready(m)
+    return cfg, cycle, ts, hp
+
+
+def time_once(f) -> float:
+    cycle, ts, hp = f
+    t0 = time.perf_counter()
+    _, m = cycle(ts, hp)
+    jax.block_until_ready(m)
+    return time.perf_counter() - t0
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--env", default="FetchPush")
+    ap.add_argument("--preset", default="fast")
+    ap.add_argument("--repeats", type=int, default=20)
+    ap.add_argument("--out", default=str(HERE / "results" / "bench_cycle.md"))
+    args = ap.parse_args()
+
+    setups = {"default": [f"env={args.env}"], args.preset: [f"env={args.env}",
+                                                             f"preset={args.preset}"]}
+    fns, cfgs = {}, {}
+    for name, settings in setups.items():
+        cfg, cycle, ts, hp = cycle_fn(settings)
+        cfgs[name] = cfg
+        fns[(name, "full")] = (cycle, ts, hp)
+        _, cycle1, ts1, hp1 = cycle_fn([*settings, "n_batches=1"])
+        fns[(name, "one")] = (cycle1, ts1, hp1)
+    times: dict = {k: [] for k in fns}
+    for _ in range(args.repeats):
+        for k, f in fns.items():
+            times[k].append(time_once(f))
+    rows = []
+    for name, cfg in cfgs.items():
+        full = statistics.median(times[(name, "full")])
+        one = statistics.median(times[(name, "one")])
+        upd = (full - one) / max(cfg.n_batches - 1, 1)
+        steps = cfg.num_envs * 50
+        rows.append({
+            "setting": name, "num_envs": cfg.num_envs, "n_batches": cfg.n_batches,
+            "cycle_ms": 1e3 * full, "rollout_ms": 1e3 * one, "update_ms": 1e3 * upd,
+            "rollout_share": one / full, "env_steps_per_s": steps / full,
+            "updates_per_s": cfg.n_batches / full,
+        })
+    lines = [
+        f"# Where a {args.env} training cycle's time goes",
+        "",
+        f"`python experiments/bench_cycle.py --env {args.env} --preset {args.preset} --repeats "
+        f"{args.repeats}` on {platform.machine()} ({platform.processor() or 'CPU'}), "
+        f"{jax.device_count()} JAX device(s); medians of {args.repeats} interleaved repeats. "
+        "'rollout' is the cycle at n_batches=1 (rollout, store, normaliser, one update); "
+        "'update' is (cycle - rollout) / (n_batches - 1), one sampled gradient step.",
+        "",
+        "| setting | envs x steps | updates | cycle ms | rollout ms (share) | update ms | "
+        "env-steps/s | updates/s |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['setting']} | {r['num_envs']} x 50 | {r['n_batches']} | {r['cycle_ms']:.0f} | "
+            f"{r['rollout_ms']:.0f} ({100 * r['rollout_share']:.0f}%) | {r['update_ms']:.2f} | "
+            f"{r['env_steps_per_s']:.0f} | {r['updates_per_s']:.0f} |")
+    text = "\n".join(lines) + "\n"
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(text)
+    out.with_suffix(".json").write_text(json.dumps(rows, indent=1))
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
