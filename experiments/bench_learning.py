@@ -105,6 +105,8 @@ def main() -> None:
     ap.add_argument("--out", default="experiments/results/bench_learning")
     ap.add_argument("--report-only", action="store_true",
                     help="tabulate the runs as they stand (e.g. stopped early), train nothing")
+    ap.add_argument("--note", default="", help="a sentence on how the runs were made, kept in "
+                    "the .md and .json (e.g. how many ran at once)")
     ap.add_argument("settings", nargs="*", help="key=value training settings")
     args = ap.parse_args()
 
@@ -140,7 +142,7 @@ def main() -> None:
         f"{platform.machine()} ({platform.processor() or 'CPU'}); wall clock from the start "
         "of training (the first epoch's compilation included, imports and env build not). "
         f"'mean of {args.window}': the first epoch whose trailing mean of {args.window} epochs "
-        "reaches the threshold.",
+        "reaches the threshold." + (f" {args.note}" if args.note else ""),
         "",
         "| seed | epochs | env steps | minutes | best | "
         + " | ".join(f"to {t} | to {t}, mean of {args.window}" for t in THRESHOLDS) + " |",
@@ -155,7 +157,8 @@ def main() -> None:
     text = "\n".join(lines) + "\n"
     (out / f"{args.name}.md").write_text(text)
     (out / f"{args.name}.json").write_text(json.dumps(
-        {"settings": args.settings, "seeds": args.seeds, "results": results}, indent=1))
+        {"settings": args.settings, "seeds": args.seeds, "note": args.note,
+         "results": results}, indent=1))
     print(text)
 
     import matplotlib
