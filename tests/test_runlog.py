@@ -186,6 +186,8 @@ def test_metrics_csv_torn_line_and_header_mismatch(tmp_path: Path) -> None:
 
 
 def test_plot_success(tmp_path: Path) -> None:
+    # Other test files (the experiment reports) may have imported pyplot already.
+    pyplot_before = "matplotlib.pyplot" in sys.modules
     log = MetricsCSV(tmp_path / "metrics.csv", METRIC_FIELDS)
     png = tmp_path / "success.png"
     plot_success(log.path, png, "empty")  # header only: still a valid image
@@ -196,7 +198,7 @@ def test_plot_success(tmp_path: Path) -> None:
     plot_success(log.path, png, "FetchReach her s0")
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 5000
     assert _leftovers(tmp_path) == []
-    assert "matplotlib.pyplot" not in sys.modules
+    assert pyplot_before or "matplotlib.pyplot" not in sys.modules  # plotting needs no pyplot
 
 
 def test_write_json_atomic(tmp_path: Path) -> None:

@@ -170,9 +170,14 @@ def test_vmapped_hparams_equal_separate_runs(tmp_path):
         ts, m = epoch(init(keys[i], hp_i), hp_i)
         np.testing.assert_allclose(vm.critic_loss[i], m.critic_loss, rtol=1e-4)
         np.testing.assert_allclose(vm.test_success[i], m.test_success)
-        # Batched matmuls round differently from unbatched ones: equal to float tolerance.
-        np.testing.assert_allclose(vts.buffer.obs[i][: cfg.n_cycles * 2],
-                                   ts.buffer.obs[: cfg.n_cycles * 2], atol=1e-4)
+        # Batched matmuls round differently from unbatched ones, and contact physics grows a
+        # rounding difference in the actions: equal to float tolerance in the first cycle's
+        # episodes (the initial policy), close in the later ones (a real difference is O(1)).
+        n_first = cfg.num_envs
+        np.testing.assert_allclose(vts.buffer.obs[i][:n_first], ts.buffer.obs[:n_first],
+                                   atol=1e-4)
+        np.testing.assert_allclose(vts.buffer.obs[i][: cfg.n_cycles * cfg.num_envs],
+                                   ts.buffer.obs[: cfg.n_cycles * cfg.num_envs], atol=5e-3)
     assert not np.allclose(vm.critic_loss[0], vm.critic_loss[1])
 
 
