@@ -1,5 +1,7 @@
 import os
+import subprocess
 
+import pytest
 from rdher_jax.envs import CPU_XLA_FLAGS
 
 # MJX on CPU needs these XLA flags (see README, "MJX on a CPU"). XLA reads them when JAX first
@@ -7,3 +9,19 @@ from rdher_jax.envs import CPU_XLA_FLAGS
 _missing = [f for f in CPU_XLA_FLAGS if f not in os.environ.get("XLA_FLAGS", "")]
 if _missing:
     os.environ["XLA_FLAGS"] = " ".join([os.environ.get("XLA_FLAGS", ""), *_missing]).strip()
+
+
+def _one_line_error(p: subprocess.Popen) -> str:
+    """The stderr of a CLI that must fail cleanly: exit 2, one ``error:`` line, no traceback."""
+    out, err = p.communicate(timeout=300)
+    assert p.returncode == 2, (p.args, out, err)
+    assert "Traceback" not in err, err
+    lines = err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), err
+    return lines[0]
+
+
+@pytest.fixture
+def one_line_error():
+    """``one_line_error(popen) -> the error line``, asserting the one-line error contract."""
+    return _one_line_error

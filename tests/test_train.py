@@ -197,16 +197,7 @@ def test_metrics_columns_follow_epoch_metrics(tmp_path):
     assert train_mod.nonfinite_losses({**row, "actor_loss": float("inf")}) == ["actor_loss"]
 
 
-def _one_line_error(p: subprocess.Popen) -> str:
-    out, err = p.communicate(timeout=300)
-    assert p.returncode == 2, (p.args, out, err)
-    assert "Traceback" not in err, err
-    lines = err.splitlines()
-    assert len(lines) == 1 and lines[0].startswith("error: "), err
-    return lines[0]
-
-
-def test_unusable_run_dir_or_resume_is_one_line_error(tmp_path):
+def test_unusable_run_dir_or_resume_is_one_line_error(tmp_path, one_line_error):
     """Every unusable run_dir or resume exits 2 with one stderr line, before anything is built
     or written: no run directory is left behind."""
     (tmp_path / "file").write_text("")
@@ -242,7 +233,7 @@ def test_unusable_run_dir_or_resume_is_one_line_error(tmp_path):
     procs = {arg: _cli([arg, "progress=false"]) for arg in cases}  # all at once: mostly startup
     try:
         for arg, fragment in cases.items():
-            assert fragment in _one_line_error(procs[arg]), arg
+            assert fragment in one_line_error(procs[arg]), arg
     finally:
         for name in ("ro", "ro-run"):
             if (tmp_path / name).exists():

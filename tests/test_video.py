@@ -48,15 +48,6 @@ def _evaluate(args, **env) -> subprocess.Popen:
                             text=True)
 
 
-def _one_line_error(p: subprocess.Popen) -> str:
-    out, err = p.communicate(timeout=300)
-    assert p.returncode == 2, (p.args, out, err)
-    assert "Traceback" not in err, err
-    lines = err.splitlines()
-    assert len(lines) == 1 and lines[0].startswith("error: "), err
-    return lines[0]
-
-
 @pytest.fixture(scope="module")
 def run(tmp_path_factory) -> Path:
     run_dir = tmp_path_factory.mktemp("video") / "run"
@@ -123,7 +114,7 @@ print("worst", worst)
     assert worst < 1e-3, p.stdout  # measured: 0 (pixel-identical)
 
 
-def test_unusable_requests_are_one_line_errors(run, tmp_path):
+def test_unusable_requests_are_one_line_errors(run, tmp_path, one_line_error):
     """A bad suffix and an unusable GL backend, from the command line: exit 2, one stderr
     line, no file written."""
     cases = {
@@ -134,7 +125,7 @@ def test_unusable_requests_are_one_line_errors(run, tmp_path):
     procs = {name: _evaluate([run, "episodes=1", *args], **env)
              for name, (args, env, _) in cases.items()}
     for name, (_, _, fragment) in cases.items():
-        assert fragment in _one_line_error(procs[name]), name
+        assert fragment in one_line_error(procs[name]), name
     assert list(tmp_path.iterdir()) == []
 
 
