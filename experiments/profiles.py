@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from rdher_jax.config import ConfigError
+from rdher_jax.runlog import write_text_atomic
 
 HERE = Path(__file__).resolve().parent
 DEFAULT_OUT = HERE / "results"
@@ -283,7 +284,7 @@ def collect(job: Job, out_root: Path, command: str, log=print) -> list[Path]:
             last = _last_row(text)
             if last is None:
                 continue
-            (dest / f"s{r['seed']}.csv").write_text(text, encoding="utf-8")
+            write_text_atomic(dest / f"s{r['seed']}.csv", text)
             wall = max(wall, float(last["wall_time"]))
             runs[f"s{r['seed']}"] = {"epochs": int(last["epoch"]),
                                      "env_steps": int(float(last["env_steps"])),
@@ -313,8 +314,7 @@ def collect(job: Job, out_root: Path, command: str, log=print) -> list[Path]:
             "wall_clock_s": wall,
             "wall_clock_per_run_s": wall / info["n_runs"] if info.get("n_runs") else None,
         }
-        (dest / "run_info.json").write_text(json.dumps(meta, indent=1, sort_keys=True) + "\n",
-                                            encoding="utf-8")
+        write_text_atomic(dest / "run_info.json", json.dumps(meta, indent=1, sort_keys=True) + "\n")
         written.append(dest)
     log(f"[{job.task} {job.name}] collected {len(job.outputs)} setting(s) into "
         f"{out_root / job.kind / job.profile / job.task}")

@@ -35,6 +35,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from rdher_jax.runlog import write_text_atomic
+
 HERE = Path(__file__).resolve().parent
 KINDS = ("ablation", "benchmark")
 TASK_ORDER = ("FetchReach", "FetchPush", "FetchSlide", "FetchPickAndPlace")
@@ -529,9 +531,9 @@ def write_reports(results: Path, only: set[tuple[str, str]] | None = None) -> li
             if not data:
                 continue
             md = pdir / "summary.md"
-            md.write_text(summary_markdown(kind, pdir.name, data), encoding="utf-8")
+            write_text_atomic(md, summary_markdown(kind, pdir.name, data))
             sc = pdir / "summary.csv"
-            sc.write_text(summary_csv(kind, data), encoding="utf-8")
+            write_text_atomic(sc, summary_csv(kind, data))
             written += [md, sc]
             for x_col, name in (("epoch", "success_epochs.png"),
                                 ("env_steps", "success_env_steps.png")):

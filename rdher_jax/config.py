@@ -74,9 +74,9 @@ PRESETS: dict[str, Preset] = {
     "fast": Preset(
         "learn FetchPush within an hour on a 2-core CPU: one episode then 40 gradient steps per "
         "cycle (0.8 per env step) on 2x256 networks; TD3's target smoothing and delayed actor, "
-        "target networks moved by 1% every 2nd step, no action penalty; a HER transition "
-        "relabelled with the very next achieved goal does not bootstrap. Changes the algorithm: "
-        "see README, 'preset=fast'",
+        "target networks moved by 1% every 2nd step, no action penalty; a transition whose goal "
+        "is exactly the next achieved goal does not bootstrap. Changes the algorithm: see "
+        "README, 'preset=fast'",
         {
             "num_envs": 1,
             "n_batches": 40,

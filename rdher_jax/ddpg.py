@@ -117,7 +117,6 @@ def critic_target(
     q_next: jax.Array,
     hindsight: jax.Array,
     hparams: HParams,
-    terminal: jax.Array | None = None,
     discount: jax.Array | None = None,
 ) -> jax.Array:
     """Clipped, reward-weighted TD target y = clip(lam * r + gamma * q_next, -lam / (1 - gamma), 0).
@@ -131,16 +130,14 @@ def critic_target(
         q_next: target-network Q of the next state, (B,).
         hindsight: whether each row's goal was relabelled, (B,) bool.
         hparams: supplies lambda_r, lambda_h, gamma.
-        terminal: optional (B,) bool; True rows do not bootstrap (y = lam * r).
-        discount: optional (B,) factor on q_next in place of gamma (n-step rows, whose reward
-            is already the discounted sum of n rewards); the clip range keeps gamma's bound.
+        discount: optional (B,) factor on q_next in place of gamma: gamma^m for n-step rows,
+            whose reward is already the discounted sum of m rewards, and 0 for rows that do not
+            bootstrap (``relabel.with_terminal``); the clip range keeps gamma's bound.
 
     Returns:
         Targets (B,), with gradients stopped.
     """
     lam = jnp.where(hindsight, hparams.lambda_h, hparams.lambda_r)
-    if terminal is not None:
-        q_next = jnp.where(terminal, 0.0, q_next)
     y = lam * reward + (hparams.gamma if discount is None else discount) * q_next
     y = jnp.clip(y, -lam / (1.0 - hparams.gamma), 0.0)
     return jax.lax.stop_gradient(y)
@@ -287,8 +284,7 @@ def make_ddpg(
             eps = jnp.clip(eps, -noise_clip * max_u, noise_clip * max_u)
             next_action = jnp.clip(next_action + eps, -max_u, max_u)
         q_next = critic.apply(state.target_critic_params, next_obs, next_goal, next_action)
-        y = critic_target(batch.reward, q_next, batch.hindsight, hparams, None,
-                          getattr(batch, "discount", None))
+        y = critic_target(batch.reward, q_next, batch.hindsight, hparams, batch.discount)
         q = critic.apply(critic_params, obs, goal, batch.action)
         return jnp.mean(jnp.square(q - y)), jnp.mean(q)
 

@@ -143,16 +143,16 @@ def test_critic_target_table():
     expected = np.clip(table[:, 0] + 0.98 * (table[:, 1] - 60.0), -50.0, 0.0)
     np.testing.assert_allclose(np.asarray(y), expected, rtol=1e-5)
 
-    # Terminal rows do not bootstrap: y = lam * r, whatever q_next is.
-    terminal = jnp.asarray(np.arange(len(table)) % 2 == 0)
-    y = critic_target(reward, q_next, hindsight, h, terminal)
+    # Rows with discount 0 do not bootstrap: y = lam * r, whatever q_next is.
+    terminal = np.arange(len(table)) % 2 == 0
+    y = critic_target(reward, q_next, hindsight, h, jnp.where(terminal, 0.0, 0.9))
     lam = np.where(table[:, 2] > 0, 0.5, 1.0)
     want = np.where(np.arange(len(table)) % 2 == 0, lam * table[:, 0], table[:, 3])
     np.testing.assert_allclose(np.asarray(y), want, rtol=1e-6, atol=1e-6)
 
     # n-step rows bring their own discount; the clip range stays gamma's.
     disc = jnp.full(len(table), 0.5, jnp.float32)
-    y = critic_target(reward, q_next, hindsight, h, None, disc)
+    y = critic_target(reward, q_next, hindsight, h, disc)
     want = np.clip(lam * table[:, 0] + 0.5 * table[:, 1], -lam / (1 - 0.9), 0.0)
     np.testing.assert_allclose(np.asarray(y), want, rtol=1e-6, atol=1e-6)
 

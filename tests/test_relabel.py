@@ -453,7 +453,7 @@ def test_terminal_rules_set_discount_zero_on_exactly_their_rows():
         np.testing.assert_allclose(got, np.where(want, 0.0, 0.9), rtol=1e-6)
     # Terminal rows' targets are their rewards: the critic target honours the discount.
     h = HParams.default(gamma=0.9)
-    y = critic_target(tr.reward, jnp.full(B, -3.0), tr.hindsight, h, None,
+    y = critic_target(tr.reward, jnp.full(B, -3.0), tr.hindsight, h,
                       relabel.with_terminal(buf, tr, "success", g).discount)
     np.testing.assert_allclose(np.asarray(y), np.where(success, 0.0, -1.0 - 2.7), rtol=1e-6)
     with pytest.raises(ValueError, match="unknown terminal rule"):

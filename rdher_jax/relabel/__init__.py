@@ -130,6 +130,17 @@ def make_relabeller(cfg, compute_reward: RewardFn, capacity_episodes: int, T: in
                      cfg.cher_sample)
 
 
+def row_goals(buffer: BufferState, batch: Transition, steps: jax.Array) -> jax.Array:
+    """The goal in force for each row at ``steps`` of its episode, ``(B, n) -> (B, n, d)``.
+
+    Fixed for HER rows; ``g[goal_ep, step + goal_shift]`` (held at the episode's ends) for real
+    rows (``goal_ep = ep``, no shift) and DHER rows (the goal-providing episode's goals).
+    """
+    idx = jnp.clip(steps + batch.goal_shift[:, None], 0, buffer.horizon)
+    traj = buffer.g[batch.goal_ep[:, None], idx]
+    return jnp.where((batch.source == HER)[:, None, None], batch.goal[:, None, :], traj)
+
+
 def observed_return(buffer: BufferState, batch: Transition, compute_reward: RewardFn,
                     gamma: jax.Array) -> jax.Array:
     """Discounted return each row's goal actually received in its stored episode.
@@ -144,10 +155,7 @@ def observed_return(buffer: BufferState, batch: Transition, compute_reward: Rewa
     """
     T = buffer.horizon
     k = jnp.arange(T, dtype=jnp.int32)[None, :]  # (1, T)
-    idx = jnp.clip(k + 1 + batch.goal_shift[:, None], 0, T)
-    traj = buffer.g[batch.goal_ep[:, None], idx]  # (B, T, d)
-    goal = jnp.where((batch.source == HER)[:, None, None], batch.goal[:, None, :], traj)
-    r = compute_reward(buffer.ag[batch.ep[:, None], k + 1], goal)
+    r = compute_reward(buffer.ag[batch.ep[:, None], k + 1], row_goals(buffer, batch, k + 1))
     live = k >= batch.t[:, None]
     disc = gamma ** jnp.maximum(k - batch.t[:, None], 0).astype(jnp.float32)
     return jnp.sum(jnp.where(live, disc * r, 0.0), axis=-1)
@@ -177,8 +185,7 @@ def n_step(buffer: BufferState, batch: Transition, n: int, gamma: jax.Array,
     live = step < T
     m = jnp.sum(live, axis=-1).astype(jnp.int32)  # min(n, T - t) >= 1
     s1 = jnp.minimum(step + 1, T)
-    traj = buffer.g[batch.goal_ep[:, None], jnp.clip(s1 + batch.goal_shift[:, None], 0, T)]
-    goal = jnp.where((batch.source == HER)[:, None, None], batch.goal[:, None, :], traj)
+    goal = row_goals(buffer, batch, s1)
     r = compute_reward(buffer.ag[batch.ep[:, None], s1], goal).astype(jnp.float32)
     discount = gamma ** m.astype(jnp.float32)
     if stop_at_success:
@@ -205,8 +212,9 @@ def with_terminal(buffer: BufferState, batch: Transition, rule: str,
     ``rule``: ``"none"`` (Fetch episodes end by time limit only: every row bootstraps),
     ``"success"`` (a row whose reward is 0, i.e. whose goal was reached), or ``"exact"`` (a row
     whose goal at ``t+1`` equals the achieved goal at ``t+1`` exactly: the HER rows relabelled
-    with the very next achieved goal, as in DRLib's HER, and nothing else in practice). Applies
-    to one-step rows; ``n_step`` handles ``"success"`` itself.
+    with the very next achieved goal, DRLib's rule, and, where the achieved goal rests between
+    steps (an untouched object), every HER row relabelled with a later one; never a real goal
+    in practice). Applies to one-step rows; ``n_step`` handles ``"success"`` itself.
     """
     if rule == "none":
         return batch
