@@ -166,6 +166,9 @@ def per_seed(s: SettingData) -> dict[str, dict[int, float]]:
     return {
         "best": {k: max(v) for k, v in succ.items()},
         "final": {k: statistics.fmean(v[-LAST:]) for k, v in succ.items()},
+        # The area under the success curve per epoch: learning speed, where best and final
+        # both sit at the ceiling (FetchReach).
+        "mean": {k: statistics.fmean(v) for k, v in succ.items()},
     }
 
 
@@ -285,7 +288,9 @@ def _intro(kind: str, profile: str, data: Sequence[SettingData]) -> list[str]:
     out += [f"Best = max over epochs of a run's test success (each epoch's mean over its "
             "deterministic test episodes; the paper's Table 2 evaluates the best policy, so "
             "ours is the more optimistic of the two for few test episodes). Final = mean of a "
-            f"run's last {LAST} epochs. Over seeds: mean ± sample std, and the 95% confidence "
+            f"run's last {LAST} epochs. Over all epochs = mean of a run's test success over every "
+            "epoch (the area under its curve: learning speed, where best and final sit at the "
+            "ceiling). Over seeds: mean ± sample std, and the 95% confidence "
             "interval of the mean, mean ± t(0.975, n−1)·std/√n, clipped to [0, 100]. In %.", ""]
     return out
 
@@ -356,14 +361,16 @@ def summary_markdown(kind: str, profile: str, data: Sequence[SettingData]) -> st
 
     out += ["## Per task: best and final success (%)", ""]
     head = ["task", "setting", "λ_r / λ_h", "seeds", "epochs", "env steps per run",
-            "best: mean ± std", "best: 95% CI", "final: mean ± std", "final: 95% CI"]
+            "best: mean ± std", "best: 95% CI", "final: mean ± std", "final: 95% CI",
+            "over all epochs: mean ± std"]
     head += ["paper, Table 2"] if bench else ["paper's pick"]
     head.append("status")
     rows = []
     for s in data:
         st = stats[(s.task, s.name)]
         row = [s.task, s.meta.get("label", s.name), lam(s), str(len(s.runs)), epochs_cell(s),
-               env_steps(s), pm(st["best"]), ci(st["best"]), pm(st["final"]), ci(st["final"])]
+               env_steps(s), pm(st["best"]), ci(st["best"]), pm(st["final"]), ci(st["final"]),
+               pm(st["mean"])]
         if bench:
             ref = PAPER_TABLE2.get(s.task, {}).get(s.meta.get("algo"))
             row.append("-" if ref is None else str(ref))
@@ -419,7 +426,7 @@ def data_label(name: str, data: Sequence[SettingData]) -> str:
 CSV_FIELDS = ("task", "setting", "label", "algo", "lambda_r", "lambda_h", "seeds",
               "epochs_min", "epochs_max", "env_steps", "best_mean", "best_std", "best_ci_lo",
               "best_ci_hi", "final_mean", "final_std", "final_ci_lo", "final_ci_hi",
-              "paper_best", "sweep", "sweep_runs", "wall_clock_s", "wall_clock_per_run_s",
+              "auc_mean", "auc_std", "paper_best", "sweep", "sweep_runs", "wall_clock_s", "wall_clock_per_run_s",
               *BIAS_COLS)
 
 
@@ -438,6 +445,7 @@ def summary_csv(kind: str, data: Sequence[SettingData]) -> str:
     for s in data:
         ps = per_seed(s)
         b, f = stat(list(ps["best"].values())), stat(list(ps["final"].values()))
+        a = stat(list(ps["mean"].values()))
         done = [len(v) for v in s.runs.values()] or [0]
         steps = max((int(_float(v[-1]["env_steps"])) for v in s.runs.values()), default=0)
         paper = PAPER_TABLE2.get(s.task, {}).get(s.meta.get("algo")) if kind == "benchmark" \
@@ -447,7 +455,7 @@ def summary_csv(kind: str, data: Sequence[SettingData]) -> str:
         w.writerow([_c(x) for x in (
             s.task, s.name, s.meta.get("label"), s.meta.get("algo"),
             s.meta.get("lambda_r"), s.meta.get("lambda_h"), len(s.runs), min(done), max(done),
-            steps, b.mean, b.std, b.lo, b.hi, f.mean, f.std, f.lo, f.hi,
+            steps, b.mean, b.std, b.lo, b.hi, f.mean, f.std, f.lo, f.hi, a.mean, a.std,
             None if paper is None else paper / 100, sw.get("name"), sw.get("runs"),
             s.meta.get("wall_clock_s"), s.meta.get("wall_clock_per_run_s"),
             *[bi[c] for c in BIAS_COLS])])

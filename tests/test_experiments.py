@@ -117,7 +117,7 @@ def test_report_files(results):
         assert len(rows) == n and {r["task"] for r in rows} == {"FetchReach"}
         for r in rows:
             assert r["seeds"] == "2" and r["epochs_max"] == "2"
-            for col in ("best_mean", "final_mean", "best_ci_lo", "best_ci_hi"):
+            for col in ("best_mean", "final_mean", "best_ci_lo", "best_ci_hi", "auc_mean"):
                 assert 0.0 <= float(r[col]) <= 1.0
             assert float(r["wall_clock_s"]) > 0 and math.isfinite(float(r["bias_real"]))
         md = (d / "summary.md").read_text(encoding="utf-8")
