@@ -172,13 +172,21 @@ def per_seed(s: SettingData) -> dict[str, dict[int, float]]:
     }
 
 
-def bias(s: SettingData) -> dict[str, float]:
-    """Mean of each bias column over the last LAST epochs and the seeds (finite values only)."""
+def bias(s: SettingData) -> dict[str, Stat]:
+    """Each bias column over seeds: per seed the mean of its last LAST epochs (finite values only),
+    then mean ± std over the seeds that have any."""
     out = {}
     for col in BIAS_COLS:
-        vals = [x for v in s.column(col).values() for x in v[-LAST:] if math.isfinite(x)]
-        out[col] = statistics.fmean(vals) if vals else math.nan
+        per = [statistics.fmean(f) for v in s.column(col).values()
+               if (f := [x for x in v[-LAST:] if math.isfinite(x)])]
+        out[col] = stat(per)
     return out
+
+
+def bias_cell(st: Stat) -> str:
+    if not math.isfinite(st.mean):
+        return "-"
+    return f"{st.mean:.2f}" if not math.isfinite(st.std) else f"{st.mean:.2f} ± {st.std:.2f}"
 
 
 def pct(x: float) -> str:
@@ -398,8 +406,9 @@ def summary_markdown(kind: str, profile: str, data: Sequence[SettingData]) -> st
     out.append("")
 
     out += ["## Hindsight-bias diagnostic", "",
-            f"Mean over the last {LAST} epochs and the seeds of Q(s, a, g) minus the discounted "
-            "return the row's goal received in its stored episode, per sample source (real, "
+            f"Per seed the mean over its last {LAST} epochs, then mean ± std over seeds, of "
+            "Q(s, a, g) minus the discounted return the row's goal received in its stored "
+            "episode, per sample source (real, "
             "HER-relabelled, DHER-combined): weighted as the critic was trained (Q − λ·G) and "
             "unweighted (Q − G); '-' where a source had no rows (README, 'Hindsight-bias "
             "diagnostic').", ""]
@@ -409,7 +418,7 @@ def summary_markdown(kind: str, profile: str, data: Sequence[SettingData]) -> st
     for s in data:
         b = bias(s)
         rows.append([s.task, s.meta.get("label", s.name), lam(s),
-                     *["-" if not math.isfinite(b[c]) else f"{b[c]:.2f}" for c in BIAS_COLS]])
+                     *[bias_cell(b[c]) for c in BIAS_COLS]])
     out += _md_table(head, rows)
     out += ["", "## Figures", "",
             "Test success, median over seeds with the interquartile band.", "",
@@ -426,7 +435,8 @@ def data_label(name: str, data: Sequence[SettingData]) -> str:
 CSV_FIELDS = ("task", "setting", "label", "algo", "lambda_r", "lambda_h", "seeds",
               "epochs_min", "epochs_max", "env_steps", "best_mean", "best_std", "best_ci_lo",
               "best_ci_hi", "final_mean", "final_std", "final_ci_lo", "final_ci_hi",
-              "auc_mean", "auc_std", "paper_best", "sweep", "sweep_runs", "wall_clock_s", "wall_clock_per_run_s",
+              "auc_mean", "auc_std", "paper_best", "sweep", "sweep_runs", "wall_clock_s",
+              "wall_clock_per_run_s",
               *BIAS_COLS)
 
 
@@ -458,7 +468,7 @@ def summary_csv(kind: str, data: Sequence[SettingData]) -> str:
             steps, b.mean, b.std, b.lo, b.hi, f.mean, f.std, f.lo, f.hi, a.mean, a.std,
             None if paper is None else paper / 100, sw.get("name"), sw.get("runs"),
             s.meta.get("wall_clock_s"), s.meta.get("wall_clock_per_run_s"),
-            *[bi[c] for c in BIAS_COLS])])
+            *[bi[c].mean for c in BIAS_COLS])])
     return buf.getvalue()
 
 

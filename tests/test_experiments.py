@@ -150,6 +150,26 @@ def test_report_regenerates_byte_identical_from_the_results_alone(results, tmp_p
         assert after[k] == before[k], k
 
 
+def test_committed_tables_regenerate_from_the_committed_csvs(tmp_path):
+    # Every summary.md / summary.csv under experiments/results is what report.py makes from the
+    # committed per-run CSVs and run_info.json files (figures: regenerated, not compared, as
+    # font rendering may differ between machines).
+    src = EXP / "results"
+    tables = sorted(p.relative_to(src) for kind in report.KINDS
+                    for p in (src / kind).glob("*/summary.*") if p.suffix in (".md", ".csv"))
+    if not tables:
+        pytest.skip("no committed experiment results")
+    copy = tmp_path / "results"
+    for kind in report.KINDS:
+        if (src / kind).is_dir():
+            shutil.copytree(src / kind, copy / kind,
+                            ignore=shutil.ignore_patterns("summary.*", "*.png"))
+    report.write_reports(copy)
+    for rel in tables:
+        assert (copy / rel).read_bytes() == (src / rel).read_bytes(), \
+            f"{rel} is stale: run python experiments/report.py"
+
+
 def test_dry_run_plans_every_algorithm_and_task(tmp_path, capsys):
     args = ["--out", str(tmp_path / "out"), "--runs-dir", str(tmp_path / "runs"), "--dry-run"]
     assert benchmark.main(["--profile", "paper", *args]) == 0
