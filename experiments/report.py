@@ -207,6 +207,39 @@ def ci(st: Stat) -> str:
     return f"[{pct(max(st.lo, 0.0))}, {pct(min(st.hi, 1.0))}]"
 
 
+def welch(xs: Sequence[float], ys: Sequence[float]) -> tuple[float, float]:
+    """Mean of xs minus mean of ys, and the two-sided p of Welch's t-test (nan when it is not
+    defined: fewer than 2 seeds on a side, or no variance on either)."""
+    import warnings
+
+    from scipy import stats as sps
+
+    xs, ys = [float(x) for x in xs], [float(y) for y in ys]
+    if not xs or not ys:
+        return math.nan, math.nan
+    diff = statistics.fmean(xs) - statistics.fmean(ys)
+    if len(xs) < 2 or len(ys) < 2 or (statistics.pstdev(xs) == 0 and statistics.pstdev(ys) == 0):
+        return diff, math.nan
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        p = float(sps.ttest_ind(xs, ys, equal_var=False).pvalue)
+    return diff, p
+
+
+def vs_cell(diff: float, p: float) -> str:
+    if not math.isfinite(diff):
+        return "-"
+    d = f"{diff * 100:+.1f}"
+    return d if not math.isfinite(p) else f"{d} (p {p:.2g})"
+
+
+def _reference(s: SettingData, data: Sequence[SettingData]) -> SettingData | None:
+    """The vanilla-HER setting of the same task, unless ``s`` is it."""
+    if s.name == "her":
+        return None
+    return next((r for r in data if r.task == s.task and r.name == "her" and r.runs), None)
+
+
 def hms(seconds: float | None) -> str:
     if seconds is None or not math.isfinite(seconds):
         return "-"
@@ -298,8 +331,10 @@ def _intro(kind: str, profile: str, data: Sequence[SettingData]) -> list[str]:
             "ours is the more optimistic of the two for few test episodes). Final = mean of a "
             f"run's last {LAST} epochs. Over all epochs = mean of a run's test success over every "
             "epoch (the area under its curve: learning speed, where best and final sit at the "
-            "ceiling). Over seeds: mean ± sample std, and the 95% confidence "
-            "interval of the mean, mean ± t(0.975, n−1)·std/√n, clipped to [0, 100]. In %.", ""]
+            "ceiling). 'vs HER': this setting's mean over seeds minus vanilla HER's on the same "
+            "task, in points, with the two-sided p of Welch's t-test over seeds. Over seeds: "
+            "mean ± sample std, and the 95% confidence interval of the mean, "
+            "mean ± t(0.975, n−1)·std/√n, clipped to [0, 100]. In %.", ""]
     return out
 
 
@@ -370,7 +405,8 @@ def summary_markdown(kind: str, profile: str, data: Sequence[SettingData]) -> st
     out += ["## Per task: best and final success (%)", ""]
     head = ["task", "setting", "λ_r / λ_h", "seeds", "epochs", "env steps per run",
             "best: mean ± std", "best: 95% CI", "final: mean ± std", "final: 95% CI",
-            "over all epochs: mean ± std"]
+            "over all epochs: mean ± std", "vs HER: final (Welch p)",
+            "vs HER: over all epochs (Welch p)"]
     head += ["paper, Table 2"] if bench else ["paper's pick"]
     head.append("status")
     rows = []
@@ -379,6 +415,13 @@ def summary_markdown(kind: str, profile: str, data: Sequence[SettingData]) -> st
         row = [s.task, s.meta.get("label", s.name), lam(s), str(len(s.runs)), epochs_cell(s),
                env_steps(s), pm(st["best"]), ci(st["best"]), pm(st["final"]), ci(st["final"]),
                pm(st["mean"])]
+        ref = _reference(s, data)
+        for key in ("final", "mean"):
+            if ref is None:
+                row.append("-")
+            else:
+                row.append(vs_cell(*welch(list(per_seed(s)[key].values()),
+                                          list(per_seed(ref)[key].values()))))
         if bench:
             ref = PAPER_TABLE2.get(s.task, {}).get(s.meta.get("algo"))
             row.append("-" if ref is None else str(ref))
@@ -435,7 +478,8 @@ def data_label(name: str, data: Sequence[SettingData]) -> str:
 CSV_FIELDS = ("task", "setting", "label", "algo", "lambda_r", "lambda_h", "seeds",
               "epochs_min", "epochs_max", "env_steps", "best_mean", "best_std", "best_ci_lo",
               "best_ci_hi", "final_mean", "final_std", "final_ci_lo", "final_ci_hi",
-              "auc_mean", "auc_std", "paper_best", "sweep", "sweep_runs", "wall_clock_s",
+              "auc_mean", "auc_std", "final_vs_her", "final_vs_her_p", "auc_vs_her",
+              "auc_vs_her_p", "paper_best", "sweep", "sweep_runs", "wall_clock_s",
               "wall_clock_per_run_s",
               *BIAS_COLS)
 
@@ -456,6 +500,10 @@ def summary_csv(kind: str, data: Sequence[SettingData]) -> str:
         ps = per_seed(s)
         b, f = stat(list(ps["best"].values())), stat(list(ps["final"].values()))
         a = stat(list(ps["mean"].values()))
+        ref = _reference(s, data)
+        vs = [math.nan] * 4 if ref is None else [
+            *welch(list(ps["final"].values()), list(per_seed(ref)["final"].values())),
+            *welch(list(ps["mean"].values()), list(per_seed(ref)["mean"].values()))]
         done = [len(v) for v in s.runs.values()] or [0]
         steps = max((int(_float(v[-1]["env_steps"])) for v in s.runs.values()), default=0)
         paper = PAPER_TABLE2.get(s.task, {}).get(s.meta.get("algo")) if kind == "benchmark" \
@@ -465,7 +513,7 @@ def summary_csv(kind: str, data: Sequence[SettingData]) -> str:
         w.writerow([_c(x) for x in (
             s.task, s.name, s.meta.get("label"), s.meta.get("algo"),
             s.meta.get("lambda_r"), s.meta.get("lambda_h"), len(s.runs), min(done), max(done),
-            steps, b.mean, b.std, b.lo, b.hi, f.mean, f.std, f.lo, f.hi, a.mean, a.std,
+            steps, b.mean, b.std, b.lo, b.hi, f.mean, f.std, f.lo, f.hi, a.mean, a.std, *vs,
             None if paper is None else paper / 100, sw.get("name"), sw.get("runs"),
             s.meta.get("wall_clock_s"), s.meta.get("wall_clock_per_run_s"),
             *[bi[c].mean for c in BIAS_COLS])])

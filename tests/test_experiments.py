@@ -217,3 +217,10 @@ def test_statistics():
     one = report.stat([0.4])
     assert one.n == 1 and math.isnan(one.std) and report.pm(one) == "40.0 (1 seed)"
     assert report.hms(3 * 3600 + 53 * 60 + 16) == "03:53:16"
+    # Welch by hand: [1, 2, 3] vs [4, 5, 6, 7]: se = sqrt(1/3 + (5/3)/4) = sqrt(0.75),
+    # t = -3.5 / 0.866 = -4.04, df = 0.5625 / ((1/3)^2/2 + (5/12)^2/3) = 4.96, p = 0.0102.
+    diff, p = report.welch([1, 2, 3], [4, 5, 6, 7])
+    assert diff == -3.5 and 0.0095 < p < 0.0110
+    assert report.vs_cell(diff / 100, p) == "-3.5 (p 0.01)"
+    assert math.isnan(report.welch([1, 1], [2, 2])[1]) and math.isnan(report.welch([1], [2, 3])[1])
+    assert report.vs_cell(math.nan, math.nan) == "-"
