@@ -415,13 +415,13 @@ def summary_markdown(kind: str, profile: str, data: Sequence[SettingData]) -> st
         row = [s.task, s.meta.get("label", s.name), lam(s), str(len(s.runs)), epochs_cell(s),
                env_steps(s), pm(st["best"]), ci(st["best"]), pm(st["final"]), ci(st["final"]),
                pm(st["mean"])]
-        ref = _reference(s, data)
+        her = _reference(s, data)
         for key in ("final", "mean"):
-            if ref is None:
+            if her is None:
                 row.append("-")
             else:
                 row.append(vs_cell(*welch(list(per_seed(s)[key].values()),
-                                          list(per_seed(ref)[key].values()))))
+                                          list(per_seed(her)[key].values()))))
         if bench:
             ref = PAPER_TABLE2.get(s.task, {}).get(s.meta.get("algo"))
             row.append("-" if ref is None else str(ref))
@@ -500,10 +500,10 @@ def summary_csv(kind: str, data: Sequence[SettingData]) -> str:
         ps = per_seed(s)
         b, f = stat(list(ps["best"].values())), stat(list(ps["final"].values()))
         a = stat(list(ps["mean"].values()))
-        ref = _reference(s, data)
-        vs = [math.nan] * 4 if ref is None else [
-            *welch(list(ps["final"].values()), list(per_seed(ref)["final"].values())),
-            *welch(list(ps["mean"].values()), list(per_seed(ref)["mean"].values()))]
+        her = _reference(s, data)
+        vs = [math.nan] * 4 if her is None else [
+            *welch(list(ps["final"].values()), list(per_seed(her)["final"].values())),
+            *welch(list(ps["mean"].values()), list(per_seed(her)["mean"].values()))]
         done = [len(v) for v in s.runs.values()] or [0]
         steps = max((int(_float(v[-1]["env_steps"])) for v in s.runs.values()), default=0)
         paper = PAPER_TABLE2.get(s.task, {}).get(s.meta.get("algo")) if kind == "benchmark" \
