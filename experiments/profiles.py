@@ -90,10 +90,12 @@ REACH_CPU = Budget(5, {"epochs": 5, "n_cycles": 10, **PAPER_LEARNER},
                    "the paper's learner; 5 epochs (5,000 env steps per run) in place of its 50")
 # FetchPush on a 2-core CPU: preset=fast (see the README, 'preset=fast'), 3 seeds, 200 epochs
 # of 50 one-episode cycles = 500,000 env steps per run, where preset=fast has reached test success
-# 0.9 (experiments/results/bench_learning/summary.md). One run takes about 20 minutes of one
-# core and vmapping seeds saves no arithmetic on a CPU, so a setting of 3 seeds is about an hour
-# of the machine: the benchmark's HER, DHER and RDHER about 3 hours, the 7-setting ablation
-# about 7; both resume where they stopped, so they can be finished over several sittings.
+# 0.9 (experiments/results/bench_learning/summary.md). Vmapping seeds saves no arithmetic on a
+# CPU: a setting of 3 seeds took 1 h 41 min (HER) and about 2 h 10 min (RDHER, whose matching
+# grows with the buffer) of one core, beside another sweep on the other core. The committed
+# reduced set is HER against RDHER at the paper's pair (--algos her rdher); the other three
+# algorithms are about 2 hours each and the ablation's six weighted settings about 10 hours,
+# and every sweep resumes where it stopped, so they can be finished over several sittings.
 PUSH_CPU = Budget(3, {"preset": "fast", "epochs": 200},
                   "preset=fast, 200 epochs of 50 one-episode cycles (500,000 env steps per run)")
 
