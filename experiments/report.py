@@ -233,11 +233,15 @@ def vs_cell(diff: float, p: float) -> str:
     return d if not math.isfinite(p) else f"{d} (p {p:.2g})"
 
 
-def _reference(s: SettingData, data: Sequence[SettingData]) -> SettingData | None:
-    """The vanilla-HER setting of the same task, unless ``s`` is it."""
-    if s.name == "her":
+def vs_her(s: SettingData, data: Sequence[SettingData]) -> dict[str, tuple[float, float]] | None:
+    """``s`` against the vanilla-HER setting of the same task, per seed-level measure ('final',
+    'mean'): (difference of means, Welch p). None for HER itself or where the task has no HER."""
+    her = None if s.name == "her" else next(
+        (r for r in data if r.task == s.task and r.name == "her" and r.runs), None)
+    if her is None:
         return None
-    return next((r for r in data if r.task == s.task and r.name == "her" and r.runs), None)
+    mine, ref = per_seed(s), per_seed(her)
+    return {k: welch(list(mine[k].values()), list(ref[k].values())) for k in ("final", "mean")}
 
 
 def hms(seconds: float | None) -> str:
@@ -415,13 +419,8 @@ def summary_markdown(kind: str, profile: str, data: Sequence[SettingData]) -> st
         row = [s.task, s.meta.get("label", s.name), lam(s), str(len(s.runs)), epochs_cell(s),
                env_steps(s), pm(st["best"]), ci(st["best"]), pm(st["final"]), ci(st["final"]),
                pm(st["mean"])]
-        her = _reference(s, data)
-        for key in ("final", "mean"):
-            if her is None:
-                row.append("-")
-            else:
-                row.append(vs_cell(*welch(list(per_seed(s)[key].values()),
-                                          list(per_seed(her)[key].values()))))
+        vs = vs_her(s, data)
+        row += ["-", "-"] if vs is None else [vs_cell(*vs["final"]), vs_cell(*vs["mean"])]
         if bench:
             ref = PAPER_TABLE2.get(s.task, {}).get(s.meta.get("algo"))
             row.append("-" if ref is None else str(ref))
@@ -500,10 +499,8 @@ def summary_csv(kind: str, data: Sequence[SettingData]) -> str:
         ps = per_seed(s)
         b, f = stat(list(ps["best"].values())), stat(list(ps["final"].values()))
         a = stat(list(ps["mean"].values()))
-        her = _reference(s, data)
-        vs = [math.nan] * 4 if her is None else [
-            *welch(list(ps["final"].values()), list(per_seed(her)["final"].values())),
-            *welch(list(ps["mean"].values()), list(per_seed(her)["mean"].values()))]
+        against = vs_her(s, data)
+        vs = [math.nan] * 4 if against is None else [*against["final"], *against["mean"]]
         done = [len(v) for v in s.runs.values()] or [0]
         steps = max((int(_float(v[-1]["env_steps"])) for v in s.runs.values()), default=0)
         paper = PAPER_TABLE2.get(s.task, {}).get(s.meta.get("algo")) if kind == "benchmark" \
