@@ -65,8 +65,11 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from rdher_jax.tasks import TASKS
+
 from .physics import RAW_SLICES, Setup
 
+# Every Fetch task here has 50-step episodes (the task table says so per task).
 EPISODE_LENGTH = 50
 _EPS4 = np.finfo(np.float64).eps * 4.0
 
@@ -125,7 +128,7 @@ class FetchEnv:
         self.backend = backend
         self.auto_reset = auto_reset
         self.name = self.spec.name
-        self.episode_length = EPISODE_LENGTH
+        self.episode_length = TASKS[self.name].episode_length
         self.dt = setup.dt
         self.distance_threshold = self.spec.distance_threshold
         self.obs_size = 25 if self.spec.has_object else 10

@@ -23,25 +23,21 @@ from typing import Any, TypeVar
 from omegaconf import OmegaConf
 from omegaconf.errors import ConfigKeyError, OmegaConfBaseException
 
-# Kept equal to the env package's own list; a test checks that they agree once both exist.
-ENV_NAMES: tuple[str, ...] = ("FetchReach", "FetchPush", "FetchSlide", "FetchPickAndPlace",
-                              "FetchReachMoving", "FetchPushMoving")
+from .tasks import TASK_NAMES, TASKS, defaults_doc
+
+ENV_NAMES: tuple[str, ...] = TASK_NAMES
 ALGO_NAMES: tuple[str, ...] = ("ddpg", "her", "archer", "cher", "dher", "rdher")
-# RDHER's reward weights (lambda_r, lambda_h) per task, the paper's choices (section 5.3); the
-# moving-goal tasks take those of their static counterparts. ARCHER has no published Fetch
-# weights and no public code, so it uses the same.
-PAPER_LAMBDAS: dict[str, tuple[float, float]] = {
-    "FetchReach": (2.0, 1.0), "FetchPickAndPlace": (2.0, 1.0),
-    "FetchPush": (4.0, 0.5), "FetchSlide": (4.0, 0.5),
-    "FetchReachMoving": (2.0, 1.0), "FetchPushMoving": (4.0, 0.5),
-}
+# RDHER's reward weights (lambda_r, lambda_h) per task are the paper's (``tasks.TASKS``). ARCHER
+# has no published Fetch weights and no public code, so it uses the same.
 WEIGHTED_ALGOS: tuple[str, ...] = ("archer", "rdher")
+DHER_ALGOS: tuple[str, ...] = ("dher", "rdher")
+# The default ring of DHER's recorded matches holds at least this many (the authors keep every
+# match of the buffer; 65536 covered every FetchPush run measured at the paper's settings).
+MIN_DHER_RECORDS = 65536
 BACKENDS: tuple[str, ...] = ("auto", "mujoco", "mjx")
 SCENES: tuple[str, ...] = ("auto", "original", "mjx")
 TERMINAL_RULES: tuple[str, ...] = ("none", "success", "exact")
 
-# Every Fetch task has 50-step episodes; gamma defaults to 1 - 1/T as in baselines' HER.
-DEFAULT_HORIZON = 50
 # Fields whose value may differ between a run and its continuation: they change neither the
 # learning problem nor the shapes of what the checkpoint holds.
 RESUMABLE_KEYS: frozenset[str] = frozenset(
@@ -120,8 +116,10 @@ class Config:
         "failed episodes, mixed with her), rdher (dher with reward weights)",
     )
     seed: int = _f(0, "PRNG seed (0 <= seed < 2**32)")
-    epochs: int | None = _f(None, "training epochs; null: task default (FetchReach 5, else 50)")
-    n_cycles: int | None = _f(None, "cycles per epoch; null: 10 for FetchReach, else 50")
+    epochs: int | None = _f(
+        None, "training epochs; null: the task's default (epochs x cycles: " + defaults_doc()
+        + ")")
+    n_cycles: int | None = _f(None, "cycles per epoch; null: the task's default (see epochs)")
     n_batches: int = _f(40, "gradient steps per cycle")
     batch_size: int = _f(256, "transitions per gradient step")
     num_envs: int = _f(
@@ -179,7 +177,11 @@ class Config:
         "(1 - success rate of the last 100 episodes), as in the DHER authors' code"
     )
     dher_tol: float = _f(0.01, "dher/rdher: goal-matching grid cell in metres (authors: 1 cm)")
-    dher_records: int = _f(65536, "dher/rdher: size of the ring of recorded goal matches")
+    dher_records: int | None = _f(
+        None, "dher/rdher: size of the ring of recorded goal matches; null: the larger of "
+        f"{MIN_DHER_RECORDS} and the matches one cycle can record (2 * num_envs * (T+1) * "
+        "dher_partners)"
+    )
     dher_partners: int = _f(
         8, "dher/rdher: matches recorded per new achieved point and per new desired-goal cell "
         "each cycle"
@@ -293,8 +295,8 @@ def validate(cfg: Config) -> Config:
         _check(v is None or v >= 1, f"{name} must be a positive integer, got {v}")
     _check(cfg.replay_k >= 0, f"replay_k must be >= 0, got {cfg.replay_k}")
     _check(cfg.target_every >= 0, f"target_every must be >= 0, got {cfg.target_every}")
-    _check(cfg.n_step <= DEFAULT_HORIZON,
-           f"n_step must be <= the episode length {DEFAULT_HORIZON}, got {cfg.n_step}")
+    T = TASKS[cfg.env].episode_length
+    _check(cfg.n_step <= T, f"n_step must be <= the episode length {T}, got {cfg.n_step}")
     _check(
         cfg.batch_size <= cfg.buffer_size,
         f"batch_size ({cfg.batch_size}) must not exceed buffer_size ({cfg.buffer_size})",
@@ -337,10 +339,11 @@ def validate(cfg: Config) -> Config:
         _check(cfg.cher_sample <= cfg.cher_candidates,
                f"cher_sample ({cfg.cher_sample}) must be <= cher_candidates "
                f"({cfg.cher_candidates})")
-    need = 2 * cfg.num_envs * (DEFAULT_HORIZON + 1) * cfg.dher_partners
-    _check(cfg.dher_records >= need,
-           f"dher_records ({cfg.dher_records}) must be >= 2 * num_envs * 51 * dher_partners "
-           f"= {need}, the matches one cycle can record")
+    if cfg.algo in DHER_ALGOS and cfg.dher_records is not None:
+        need = dher_records_needed(cfg)
+        _check(cfg.dher_records >= need,
+               f"dher_records ({cfg.dher_records}) must be >= 2 * num_envs * (T+1) * "
+               f"dher_partners = {need}, the matches one cycle can record")
     _check(cfg.gamma is None or 0.0 < cfg.gamma < 1.0, f"gamma must be in (0, 1), got {cfg.gamma}")
     for name in ("run_dir", "resume"):
         v = getattr(cfg, name)
@@ -424,16 +427,21 @@ def default_run_dir(cfg: Config, now: datetime.datetime | None = None) -> str:
     return str(Path("runs") / f"{cfg.env}-{cfg.algo}-s{cfg.seed}-{stamp}")
 
 
-def resolve(
-    cfg: Config, horizon: int = DEFAULT_HORIZON, now: datetime.datetime | None = None
-) -> Config:
-    """Fill every ``None`` default: epochs, n_cycles, gamma (1 - 1/horizon), the reward weights
-    (per task for rdher and archer, else 1) and run_dir.
+def dher_records_needed(cfg: Config) -> int:
+    """The matches one cycle can record: 2 points per step of each new episode, each with up to
+    ``dher_partners`` partners."""
+    return 2 * cfg.num_envs * (TASKS[cfg.env].episode_length + 1) * cfg.dher_partners
+
+
+def resolve(cfg: Config, now: datetime.datetime | None = None) -> Config:
+    """Fill every ``None`` default from the task's entry in ``tasks.TASKS``: epochs, n_cycles,
+    gamma (1 - 1/T, T the episode length, as in baselines' HER), the reward weights (per task
+    for rdher and archer, else 1), dher_records; and run_dir.
 
     With ``resume`` set, ``run_dir`` is the resumed directory.
     """
-    small = cfg.env in ("FetchReach", "FetchReachMoving")
-    lam_r, lam_h = PAPER_LAMBDAS[cfg.env] if cfg.algo in WEIGHTED_ALGOS else (1.0, 1.0)
+    task = TASKS[cfg.env]
+    lam_r, lam_h = task.paper_lambdas if cfg.algo in WEIGHTED_ALGOS else (1.0, 1.0)
     run_dir = cfg.run_dir
     if cfg.resume is not None:
         if run_dir is not None and Path(run_dir).resolve() != Path(cfg.resume).resolve():
@@ -444,12 +452,14 @@ def resolve(
         run_dir = cfg.resume
     out = dataclasses.replace(
         cfg,
-        epochs=cfg.epochs if cfg.epochs is not None else (5 if small else 50),
-        n_cycles=cfg.n_cycles if cfg.n_cycles is not None else (10 if small else 50),
-        gamma=cfg.gamma if cfg.gamma is not None else 1.0 - 1.0 / horizon,
+        epochs=cfg.epochs if cfg.epochs is not None else task.epochs,
+        n_cycles=cfg.n_cycles if cfg.n_cycles is not None else task.n_cycles,
+        gamma=cfg.gamma if cfg.gamma is not None else 1.0 - 1.0 / task.episode_length,
         lambda_r=cfg.lambda_r if cfg.lambda_r is not None else lam_r,
         lambda_h=cfg.lambda_h if cfg.lambda_h is not None else lam_h,
         run_dir=run_dir if run_dir is not None else default_run_dir(cfg, now),
+        dher_records=cfg.dher_records if cfg.dher_records is not None
+        else max(MIN_DHER_RECORDS, dher_records_needed(cfg)),
     )
     return validate(out)
 

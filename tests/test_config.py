@@ -175,7 +175,6 @@ def test_resolve() -> None:
     assert slide.run_dir == str(Path("runs") / "FetchSlide-ddpg-s2-20240506-070809")
     kept = resolve(parse_args(["epochs=3", "n_cycles=4", "gamma=0.9", "run_dir=a"]))
     assert (kept.epochs, kept.n_cycles, kept.gamma, kept.run_dir) == (3, 4, 0.9, "a")
-    assert resolve(Config(), horizon=100).gamma == pytest.approx(0.99)
     assert resolve(parse_args(["resume=runs/old"])).run_dir == "runs/old"
     with pytest.raises(ConfigError, match="differs from resume"):
         resolve(parse_args(["resume=runs/old", "run_dir=runs/new"]))
@@ -238,12 +237,29 @@ def test_reward_weights_default_per_algo_and_task(env, algo, want) -> None:
     [("dher_fraction=1.5", "dher_fraction must be in [0, 1]"),
      ("dher_tol=0", "dher_tol must be > 0"),
      ("cher_candidates=8", "cher_candidates (8) must be >= batch_size (256)"),
-     ("dher_records=100", "dher_records (100) must be >="),
+     ("algo=dher dher_records=100", "dher_records (100) must be >="),
+     ("algo=rdher num_envs=200 dher_records=65536", "dher_records (65536) must be >="),
      ("cher_growth=0.5", "cher_growth must be >= 1")],
 )
 def test_relabel_options_are_checked(arg, msg) -> None:
     with pytest.raises(ConfigError, match=re.escape(msg)):
-        parse_args([arg])
+        parse_args(arg.split())
+
+
+@pytest.mark.parametrize("algo", ["ddpg", "her", "archer", "cher", "dher", "rdher"])
+def test_every_algo_takes_thousands_of_envs(algo) -> None:
+    # The ring of DHER matches is sized from num_envs unless given, and checked only where
+    # DHER runs: a GPU-sized run needs no extra key.
+    cfg = resolve(parse_args([f"algo={algo}", "num_envs=4096"]))
+    assert cfg.dher_records == max(65536, 2 * 4096 * 51 * 8)
+    small = resolve(parse_args([f"algo={algo}"]))
+    assert small.dher_records == 65536
+    # An explicit ring that is too small for DHER is not an error for the others.
+    if algo in ("dher", "rdher"):
+        with pytest.raises(ConfigError, match="dher_records"):
+            parse_args([f"algo={algo}", "num_envs=4096", "dher_records=65536"])
+    else:
+        parse_args([f"algo={algo}", "num_envs=4096", "dher_records=65536"])
 
 
 def test_presets_resolve_to_their_documented_values() -> None:
