@@ -23,7 +23,7 @@ from pathlib import Path
 
 import jax
 
-from rdher_jax import train as train_mod
+from rdher_jax import driver
 from rdher_jax.config import parse_args, resolve
 
 HERE = Path(__file__).resolve().parent
@@ -32,7 +32,7 @@ HERE = Path(__file__).resolve().parent
 def cycle_fn(settings: list[str]):
     """A jitted cycle and a filled-in TrainState for the given ``key=value`` settings."""
     cfg = resolve(parse_args([*settings, "run_dir=/tmp/bench_cycle_unused", "progress=false"]))
-    _, trainer = train_mod.build(cfg)
+    _, trainer = driver.build(cfg)
     hp = trainer.hparams
     # Donated, as inside the trainer's epoch scan, where the state is carried in place: without
     # it every call would copy the whole replay buffer.

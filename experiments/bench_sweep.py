@@ -32,9 +32,8 @@ from pathlib import Path
 
 import jax
 
-from rdher_jax import sweep as sw
 from rdher_jax.config import Config, resolve
-from rdher_jax.train import build
+from rdher_jax.driver import Program, build, stack, tree_bytes
 from rdher_jax.trainer import hparams_from_config
 
 HERE = Path(__file__).resolve().parent
@@ -61,10 +60,10 @@ def state_bytes_paper_sweep() -> dict:
     cfg = resolve(Config(env="FetchPush", algo="her", run_dir="unused", progress=False))
     _, trainer = build(cfg)
     runs = run_configs(cfg, 35)
-    hps = sw.stack([hparams_from_config(c) for c in runs])
-    keys = sw.stack([jax.random.PRNGKey(c.seed) for c in runs])
+    hps = stack([hparams_from_config(c) for c in runs])
+    keys = stack([jax.random.PRNGKey(c.seed) for c in runs])
     shape = jax.eval_shape(jax.vmap(trainer.init), keys, hps)
-    total = sw.tree_bytes(shape)
+    total = tree_bytes(shape)
     return {"env": "FetchPush", "runs": 35, "bytes": total, "bytes_per_run": total // 35}
 
 
@@ -91,17 +90,17 @@ def main() -> None:
     ts = jax.jit(trainer.init)(jax.random.PRNGKey(base.seed), hp1)
     (ts, _), first = timed(single, ts, hp1)
     programs["1 run"] = {"n": 1, "fn": single, "ts": ts, "hp": hp1, "first_s": first,
-                         "bytes": sw.tree_bytes(ts), "times": []}
+                         "bytes": tree_bytes(ts), "times": []}
     print(f"1 run (jit): first epoch incl. compile {first:.1f} s", flush=True)
     for n in a.runs:
         runs = run_configs(base, n)
-        prog = sw.SweepProgram(trainer, n, devices=[dev])
-        hps = prog.put(sw.stack([hparams_from_config(c) for c in runs]))
-        keys = prog.put(sw.stack([jax.random.PRNGKey(c.seed) for c in runs]))
+        prog = Program(trainer, n, devices=[dev])
+        hps = prog.put(stack([hparams_from_config(c) for c in runs]))
+        keys = prog.put(stack([jax.random.PRNGKey(c.seed) for c in runs]))
         vts = prog.init(keys, hps)
         (vts, _), first = timed(prog.epoch, vts, hps)
         programs[f"{n} vmapped"] = {"n": n, "fn": prog.epoch, "ts": vts, "hp": hps,
-                                    "first_s": first, "bytes": sw.tree_bytes(vts), "times": []}
+                                    "first_s": first, "bytes": tree_bytes(vts), "times": []}
         print(f"{n} runs (vmap): first epoch incl. compile {first:.1f} s", flush=True)
 
     # ---- interleaved timed rounds

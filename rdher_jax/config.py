@@ -52,6 +52,12 @@ RESUMABLE_KEYS: frozenset[str] = frozenset(
         "progress",
     }
 )
+# The fields that reach the compiled program only as traced values (``trainer.Hyper``), so runs
+# that differ in them (and in the seed) are one program: what a sweep may vary.
+TRACED_KEYS: tuple[str, ...] = (
+    "actor_lr", "critic_lr", "polyak", "action_l2", "noise_eps", "random_eps", "lambda_r",
+    "lambda_h", "gamma", "replay_k", "dher_fraction", "dher_tol", "cher_growth",
+)
 PROG = "python -m rdher_jax.train"
 
 
@@ -357,7 +363,7 @@ def _merge(base: Config, overrides: Any, raw: Mapping[str, str]) -> Config:
         merged = OmegaConf.merge(OmegaConf.structured(base), overrides)
         cfg = OmegaConf.to_object(merged)
     except ConfigKeyError as e:
-        raise ConfigError(_unknown_key_msg(str(getattr(e, "key", None) or e))) from None
+        raise unknown_key(str(getattr(e, "key", None) or e), FIELD_NAMES) from None
     except OmegaConfBaseException as e:
         key = str(getattr(e, "full_key", None) or getattr(e, "key", None) or "")
         if key in _HINTS:
@@ -371,10 +377,33 @@ def _merge(base: Config, overrides: Any, raw: Mapping[str, str]) -> Config:
     return validate(cfg)
 
 
-def _unknown_key_msg(key: str) -> str:
-    close = difflib.get_close_matches(key, FIELD_NAMES, n=1)
+def unknown_key(key: str, valid: Sequence[str]) -> ConfigError:
+    """The one-line error of a key that no command takes, with the closest valid key."""
+    close = difflib.get_close_matches(key, list(valid), n=1)
     hint = f" (did you mean {close[0]}?)" if close else ""
-    return f"unknown key {key!r}{hint}; run with --help to list the keys"
+    return ConfigError(f"unknown key {key!r}{hint}; run with --help to list the keys")
+
+
+def split_args(argv: Sequence[str], extra: Sequence[str] = (), prefixes: Sequence[str] = ()
+               ) -> tuple[dict[str, str], dict[str, str]]:
+    """``key=value`` tokens -> (config fields, other keys); later tokens win.
+
+    The other keys are those in ``extra`` and any starting with one of ``prefixes`` (e.g.
+    ``grid.``). Every other key is a one-line ConfigError naming the closest valid key. This is
+    the parser of every command line of the project (train, sweep, evaluate).
+    """
+    fields: dict[str, str] = {}
+    other: dict[str, str] = {}
+    for tok in argv:
+        key, value = split_token(tok)
+        if key in extra or any(key.startswith(p) for p in prefixes):
+            other[key] = value
+        elif key in FIELD_NAMES:
+            fields[key] = value
+        else:
+            # Checked before OmegaConf so that dotted or hydra-style keys get the same message.
+            raise unknown_key(key, [*extra, *FIELD_NAMES])
+    return fields, other
 
 
 def split_token(tok: str) -> tuple[str, str]:
@@ -405,13 +434,14 @@ def parse_args(argv: Sequence[str], base: Config | None = None, prog: str = PROG
         sys.stdout.write(help_text(prog))
         sys.stdout.flush()
         raise SystemExit(0)
-    raw: dict[str, str] = {}
-    for tok in argv:
-        key, value = split_token(tok)
-        if key not in FIELD_NAMES:
-            # Checked before OmegaConf so that dotted or hydra-style keys get the same message.
-            raise ConfigError(_unknown_key_msg(key))
-        raw[key] = value
+    raw, _ = split_args(argv)
+    return config_from_fields(raw, base)
+
+
+def config_from_fields(raw: Mapping[str, str], base: Config | None = None) -> Config:
+    """Apply ``{field: value text}`` (a preset first, then the rest) onto ``base`` and
+    validate."""
+    raw = dict(raw)
     if "preset" in raw:
         raw = {**preset_tokens(raw["preset"]), **raw}
     try:
@@ -484,25 +514,39 @@ def from_yaml(path: str | Path) -> Config:
         raise ConfigError(f"{path}: {e}") from None
 
 
-def resume_config(cfg: Config, argv: Sequence[str]) -> Config:
-    """The config of a resumed run: ``<resume>/config.yaml`` with ``argv`` re-applied.
+def continue_config(saved: Config, raw: Mapping[str, str], directory: str | Path) -> Config:
+    """The config that continues a run or a sweep saved in ``directory`` as ``saved``:
+    ``raw`` (``{field: value text}``) applied onto it and resolved, its ``run_dir`` the
+    directory.
 
-    Only :data:`RESUMABLE_KEYS` may differ from the saved run; anything else would change the
-    learning problem or the checkpoint's shapes, so it is a ConfigError.
+    Only :data:`RESUMABLE_KEYS` may differ from the saved config; anything else would change the
+    learning problem or the checkpoint's shapes, so it is a ConfigError. This is the one resume
+    check of both ``train`` and ``sweep``.
     """
-    if cfg.resume is None:
-        raise ConfigError("resume_config needs resume=<run dir>")
-    saved = from_yaml(Path(cfg.resume) / "config.yaml")
-    # run_dir is re-derived from resume (the directory may have been moved since).
-    new = parse_args(list(argv), base=dataclasses.replace(saved, run_dir=None))
-    new = resolve(new)
-    changed = [
-        k for k in FIELD_NAMES if k not in RESUMABLE_KEYS and getattr(new, k) != getattr(saved, k)
-    ]
+    raw = {k: v for k, v in raw.items() if k not in ("resume", "run_dir")}
+    new = config_from_fields(raw, base=dataclasses.replace(saved, run_dir=None, resume=None))
+    new = resolve(dataclasses.replace(new, run_dir=str(directory), resume=str(directory)))
+    changed = [k for k in FIELD_NAMES
+               if k not in RESUMABLE_KEYS and getattr(new, k) != getattr(saved, k)]
     if changed:
         diffs = ", ".join(f"{k}: {getattr(saved, k)!r} -> {getattr(new, k)!r}" for k in changed)
-        raise ConfigError(f"cannot change {diffs} when resuming {cfg.resume}")
+        raise ConfigError(f"cannot change {diffs} when resuming {directory}")
     return new
+
+
+def resume_config(cfg: Config, argv: Sequence[str]) -> Config:
+    """The config of a resumed run: ``<resume>/config.yaml`` with ``argv`` re-applied (see
+    :func:`continue_config`)."""
+    if cfg.resume is None:
+        raise ConfigError("resume_config needs resume=<run dir>")
+    if cfg.run_dir is not None and Path(cfg.run_dir).resolve() != Path(cfg.resume).resolve():
+        raise ConfigError(
+            f"run_dir={cfg.run_dir} differs from resume={cfg.resume}; a resumed run writes into "
+            "the directory it resumes, so pass resume only"
+        )
+    saved = from_yaml(Path(cfg.resume) / "config.yaml")
+    raw, _ = split_args(argv)
+    return continue_config(saved, raw, cfg.resume)
 
 
 F = TypeVar("F", bound=Callable[..., Any])

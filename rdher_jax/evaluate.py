@@ -68,7 +68,7 @@ def evaluate(run_dir: Path, episodes: int = 100, seed: int = 0, backend: str | N
     """Test success of the best policy of ``run_dir`` over ``episodes`` episodes; with
     ``video``, also ``video_episodes`` deterministic episodes rendered to that .gif or .mp4
     (raises ``render.RenderError`` if MuJoCo cannot render or the file cannot be written)."""
-    from .train import build
+    from .driver import build
 
     if video is not None:
         video = render.check_video_path(video, width, height)

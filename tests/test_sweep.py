@@ -10,6 +10,7 @@ import sys
 import numpy as np
 import pytest
 
+from rdher_jax import driver
 from rdher_jax import sweep as sweep_mod
 from rdher_jax import train as train_mod
 from rdher_jax.config import Config, resolve
@@ -114,9 +115,9 @@ def test_summary_rows(ref):
     for pair in (rows[:2], rows[2:]):
         best = [float(r["best_test_success"]) for r in pair]
         for r in pair:
-            assert int(r["pair_seeds"]) == 2
-            assert math.isclose(float(r["pair_best_mean"]), np.mean(best))
-            assert math.isclose(float(r["pair_best_std"]), np.std(best, ddof=1), abs_tol=1e-12)
+            assert int(r["setting_seeds"]) == 2
+            assert math.isclose(float(r["setting_best_mean"]), np.mean(best))
+            assert math.isclose(float(r["setting_best_std"]), np.std(best, ddof=1), abs_tol=1e-12)
     md = (d / "summary.md").read_text()
     assert "| 1 | 1 | 2 |" in md and "| 2 | 0.5 | 2 |" in md
     assert all(f"| {run} |" in md for run in RUNS)
@@ -153,14 +154,14 @@ def test_resume_equals_uninterrupted(ref, tmp_path, monkeypatch):
     """A sweep stopped after epoch 3's rows but before its checkpoint (the last one is after
     epoch 2) resumes from epoch 2 and ends exactly as the uninterrupted sweep."""
     d = ref["dir"]
-    real = sweep_mod.is_checkpoint_epoch
+    real = driver.is_checkpoint_epoch
 
     def stop_at_3(cfg, epoch):
         if epoch == 3:
             raise Interrupted
         return real(cfg, epoch)
 
-    monkeypatch.setattr(sweep_mod, "is_checkpoint_epoch", stop_at_3)
+    monkeypatch.setattr(driver, "is_checkpoint_epoch", stop_at_3)
     with pytest.raises(Interrupted):
         run_sweep(tmp_path / "s")
     monkeypatch.undo()
@@ -182,10 +183,10 @@ def _poison(monkeypatch, which):
     new compilation: the ref sweep's program is reused)."""
     import jax.numpy as jnp
 
-    real = sweep_mod._program_for
+    real = driver.program_for
 
-    def program_for(runs, devices):
-        env, trainer, prog = real(runs, devices)
+    def program_for(runs, devices=None, vmapped=True):
+        env, trainer, prog = real(runs, devices, vmapped)
         poisoned = copy.copy(prog)
 
         def epoch(ts, hps):
@@ -196,7 +197,7 @@ def _poison(monkeypatch, which):
         poisoned.epoch = epoch
         return env, trainer, poisoned
 
-    monkeypatch.setattr(sweep_mod, "_program_for", program_for)
+    monkeypatch.setattr(driver, "program_for", program_for)
 
 
 def test_a_diverged_run_stops_alone(ref, tmp_path, monkeypatch):

@@ -13,6 +13,7 @@ import jax
 import numpy as np
 import pytest
 
+from rdher_jax import driver
 from rdher_jax import train as train_mod
 from rdher_jax.checkpoint import Checkpointer
 from rdher_jax.config import Config, resolve
@@ -33,7 +34,7 @@ def read_csv(path):
 
 def test_epoch_traces_once(tmp_path):
     cfg = tiny_cfg(tmp_path, epochs=3)
-    env, trainer = train_mod.build(cfg)
+    env, trainer = driver.build(cfg)
     traces = []
 
     def epoch(ts, hp):
@@ -89,7 +90,7 @@ def test_resume_after_sigkill_equals_uninterrupted(tmp_path):
 
 
 def test_nan_loss_stops_run_and_keeps_last_checkpoint(tmp_path, monkeypatch):
-    real_build = train_mod.build
+    real_build = driver.build
 
     def build(cfg):
         env, trainer = real_build(cfg)
@@ -101,7 +102,8 @@ def test_nan_loss_stops_run_and_keeps_last_checkpoint(tmp_path, monkeypatch):
 
         return env, trainer._replace(epoch=epoch)
 
-    monkeypatch.setattr(train_mod, "build", build)
+    monkeypatch.setattr(driver, "build", build)
+    monkeypatch.setattr(driver, "_LAST_PROGRAM", {})
     cfg = tiny_cfg(tmp_path, epochs=4)
     with pytest.raises(train_mod.TrainingDiverged, match="critic_loss.*epoch 2.*epoch 1"):
         train_mod.train(cfg)
@@ -157,7 +159,7 @@ def test_vmapped_hparams_equal_separate_runs(tmp_path):
     from rdher_jax.trainer import hparams_from_config
 
     cfg = tiny_cfg(tmp_path, epochs=1)
-    _, trainer = train_mod.build(cfg)
+    _, trainer = driver.build(cfg)
     cfgs = [dataclasses.replace(cfg, critic_lr=1e-3, lambda_r=1.0, seed=7),
             dataclasses.replace(cfg, critic_lr=3e-3, lambda_r=2.0, seed=8)]
     hps = jax.tree.map(lambda *x: jax.numpy.stack(x), *[hparams_from_config(c) for c in cfgs])
@@ -187,14 +189,14 @@ def test_metrics_columns_follow_epoch_metrics(tmp_path):
     from rdher_jax.trainer import EpochMetrics
 
     names = [f.name for f in dataclasses.fields(EpochMetrics)]
-    cols = train_mod.csv_fields()
+    cols = driver.csv_fields()
     assert cols[: len(LEADING_FIELDS)] == LEADING_FIELDS
     assert sorted(cols) == sorted({*names, "epoch", "wall_time"})
     m = EpochMetrics(**{n: np.float32(0.5) for n in names})
-    row = train_mod.epoch_row(3, m, 1.23456)
+    row = driver.epoch_row(3, m, 1.23456)
     assert list(row) == list(cols) and row["epoch"] == 3 and row["wall_time"] == 1.235
-    assert train_mod.loss_fields(cols)[:3] == ("critic_loss", "actor_loss", "q_mean")
-    assert train_mod.nonfinite_losses({**row, "actor_loss": float("inf")}) == ["actor_loss"]
+    assert driver.loss_fields(cols)[:3] == ("critic_loss", "actor_loss", "q_mean")
+    assert driver.nonfinite_losses({**row, "actor_loss": float("inf")}) == ["actor_loss"]
 
 
 def test_unusable_run_dir_or_resume_is_one_line_error(tmp_path, one_line_error):
@@ -269,7 +271,7 @@ def test_target_every_moves_targets_inside_the_cycle(tmp_path):
     run), instead of once after the cycle; polyak=0 makes 'updated' mean 'equal to online'."""
     def one_cycle(**kw):
         cfg = tiny_cfg(tmp_path, epochs=1, polyak=0.0, n_batches=4, **kw)
-        _, trainer = train_mod.build(cfg)
+        _, trainer = driver.build(cfg)
         ts0 = jax.jit(trainer.init)(jax.random.PRNGKey(0), trainer.hparams)
         ts, _ = jax.jit(trainer.cycle)(ts0, trainer.hparams)
         return ts0.ddpg, ts.ddpg

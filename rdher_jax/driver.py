@@ -1,0 +1,582 @@
+"""The run driver: N >= 1 runs as one compiled program, and everything around its epochs.
+
+``python -m rdher_jax.train`` (one run) and ``python -m rdher_jax.sweep`` (many) are thin
+command lines over :func:`drive`, which takes a :class:`Plan` (the runs' resolved configs and
+where they write) and does the rest: build the program, init or resume, the epoch loop,
+metrics rows, plots, best-policy and latest checkpoints, NaN handling and, for a sweep, the
+summary.
+
+The program is ``trainer.epoch`` over a leading run axis: ``jax.jit(jax.vmap(epoch))`` for a
+sweep, and for a single run the unvmapped epoch with the run axis added and dropped around it
+(so a run gives exactly the numbers it gave before sweeps existed). With several JAX devices a
+sweep's run axis is split over a 1-D mesh ``"runs"`` (``NamedSharding(mesh, P("runs"))``) and
+the vmapped epoch runs under ``shard_map``, so each device steps only its own runs: no
+collective is needed, and the native backend's ``pure_callback`` is made once per device per
+env step for that device's runs. (Plain ``jit`` with sharded inputs also works, but XLA's
+partitioner then pins the callback to device 0 and gathers every run's env batch there and back
+at each step.) When the number of runs does not divide the number of devices, the run axis is
+padded with copies of the first run, computed and discarded.
+
+Two layouts of outputs (:attr:`Plan.sweep`):
+
+- a run (``train``): ``run_dir/`` holds config.yaml, run_info.json, metrics.csv, success.png,
+  ``checkpoints/latest`` (the run's TrainState) and ``checkpoints/best`` (its best policy);
+- a sweep: ``sweep_dir/<run>/`` holds what a run holds except the latest state, which is the
+  sweep's: ``sweep_dir/checkpoints/latest`` (every run's TrainState, stacked), beside
+  ``sweep.yaml`` (what varies), ``base_config.yaml``, ``run_info.json`` and the summary
+  (``rdher_jax.summary``).
+
+A run whose losses become NaN or inf stops being logged (its files keep its last good epoch);
+the others go on. The program stops only when every run has diverged.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import platform
+import sys
+import time
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import summary
+from .checkpoint import Checkpointer
+from .config import RESUMABLE_KEYS, TRACED_KEYS, Config, ConfigError, to_yaml
+from .runlog import (
+    MetricsCSV,
+    TBWriter,
+    check_fresh_dir,
+    check_resume_dir,
+    make_dir,
+    metric_fields,
+    plot_success,
+    write_json_atomic,
+    write_text_atomic,
+)
+
+SPEC_FILE = "sweep.yaml"
+BASE_CONFIG_FILE = "base_config.yaml"
+
+
+class TrainingDiverged(RuntimeError):
+    """Every run's losses became NaN or inf; the last good checkpoint is kept."""
+
+
+# ------------------------------------------------------------------ building
+
+def resolve_backend(cfg: Config) -> tuple[str, str]:
+    """The physics backend and scene a config asks for, with ``auto`` decided here."""
+    from .envs import default_backend
+
+    backend = default_backend() if cfg.backend == "auto" else cfg.backend
+    scene = cfg.scene if cfg.scene != "auto" else ("original" if backend == "mujoco" else "mjx")
+    if backend == "mjx" and scene != "mjx":
+        raise ConfigError("backend=mjx needs scene=mjx (mjx.put_model rejects the original)")
+    return backend, scene
+
+
+def build(cfg: Config):
+    """Env and trainer (``trainer.make_trainer``) of a resolved config."""
+    from .envs import make_env
+    from .trainer import make_trainer
+
+    backend, scene = resolve_backend(cfg)
+    env = make_env(cfg.env, backend=backend, scene=scene, auto_reset=False)
+    return env, make_trainer(cfg, env)
+
+
+def _cpu_model() -> str:
+    """The CPU's model name on Linux (platform.processor() is often empty there)."""
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return ""
+
+
+def run_info(cfg: Config, argv: Sequence[str], prog: str) -> dict:
+    """Command line, backend, hardware and package versions, for ``run_info.json``."""
+    import importlib.metadata as md
+
+    versions = {}
+    for pkg in ("jax", "jaxlib", "mujoco", "mujoco-mjx", "mjbatch", "gymnasium-robotics", "flax",
+                "optax", "brax", "orbax-checkpoint"):
+        try:
+            versions[pkg] = md.version(pkg)
+        except md.PackageNotFoundError:
+            versions[pkg] = None
+    backend, scene = resolve_backend(cfg)
+    return {
+        "command": " ".join([prog, *argv]),
+        "backend": backend,
+        "scene": scene,
+        "jax_backend": jax.default_backend(),
+        "devices": [str(d) for d in jax.devices()],
+        "cpu_count": os.cpu_count(),
+        "machine": platform.machine(),
+        "processor": platform.processor() or _cpu_model(),
+        "python": platform.python_version(),
+        "versions": versions,
+    }
+
+
+def stack(trees: Sequence[Any]) -> Any:
+    """Stack pytrees of equal structure along a new leading (run) axis."""
+    return jax.tree.map(lambda *x: jnp.stack(x), *trees)
+
+
+def tree_bytes(tree: Any) -> int:
+    """Bytes held by the array leaves of ``tree`` (their global size when sharded)."""
+    return int(sum(np.dtype(x.dtype).itemsize * math.prod(x.shape)
+                   for x in jax.tree.leaves(tree)))
+
+
+class Program:
+    """A trainer's ``init`` and ``epoch`` over a leading run axis, each one compiled program.
+
+    ``vmapped=False`` (one run only): the plain functions, the run axis taken off and put back
+    inside the jitted program. One device: ``jax.jit(jax.vmap(f))``. Several: the vmapped
+    function under ``shard_map`` over the 1-D mesh ``"runs"``; ``n_padded`` (the run count
+    rounded up to a multiple of the device count) is the length of the run axis it sees.
+    """
+
+    def __init__(self, trainer: Any, n_runs: int, devices: Sequence[Any] | None = None,
+                 vmapped: bool = True) -> None:
+        self.devices = list(devices or jax.devices())[: n_runs if not vmapped else None]
+        if not vmapped and n_runs != 1:
+            raise ValueError("an unvmapped program runs exactly one run")
+        d = len(self.devices)
+        self.n_runs = n_runs
+        self.n_padded = -(-n_runs // d) * d
+        self.mesh = None
+        if d == 1:
+            # Committed to the device, as restored checkpoints are: jit's cache tells committed
+            # from uncommitted inputs, and a resume in the same process should not recompile.
+            self.sharding = jax.sharding.SingleDeviceSharding(self.devices[0])
+            lift = jax.vmap if vmapped else _one_run
+            self.init = jax.jit(lift(trainer.init))
+            self.epoch = jax.jit(lift(trainer.epoch), donate_argnums=0)
+            return
+        from jax.sharding import Mesh, NamedSharding
+        from jax.sharding import PartitionSpec as P
+
+        self.mesh = Mesh(np.array(self.devices), ("runs",))
+        self.sharding = NamedSharding(self.mesh, P("runs"))
+
+        def split(f):
+            # check_vma=False: pure_callback results (the native physics) carry no
+            # varying-manual-axes type, so scans carrying env states through them fail the check.
+            # Every output is split over "runs" (nothing is claimed replicated), so the check
+            # has nothing to protect here.
+            return jax.shard_map(jax.vmap(f), mesh=self.mesh, in_specs=P("runs"),
+                                 out_specs=P("runs"), check_vma=False)
+
+        self.init = jax.jit(split(trainer.init))
+        self.epoch = jax.jit(split(trainer.epoch), donate_argnums=0)
+
+    def pad(self, tree: Any) -> Any:
+        """Extend the run axis to ``n_padded`` with copies of the first run."""
+        k = self.n_padded - self.n_runs
+        if k == 0:
+            return tree
+        return jax.tree.map(lambda x: jnp.concatenate([x, jnp.repeat(x[:1], k, axis=0)]), tree)
+
+    def unpad(self, tree: Any) -> Any:
+        """The real runs of a padded tree, as host arrays.
+
+        On the host on purpose: slicing a run-sharded array on device compiles a program with
+        a cross-device collective, and XLA:CPU runs host devices on one thread pool, so with
+        more host devices than pool threads two devices can block in the collective's
+        rendezvous while the third never gets a thread (seen as a 40 s rendezvous abort).
+        Nothing the driver runs between epochs may need a collective.
+        """
+        return jax.tree.map(lambda x: np.asarray(x)[: self.n_runs], jax.device_get(tree))
+
+    def put(self, tree: Any) -> Any:
+        """Pad and place ``tree`` as the program's inputs are placed."""
+        return jax.device_put(self.pad(tree), self.sharding)
+
+    def describe(self) -> str:
+        if self.mesh is None:
+            return f"one device ({self.devices[0]})"
+        pad = (f", padded from {self.n_runs} with copies of the first run"
+               if self.n_padded != self.n_runs else "")
+        return (f"shard_map over mesh ('runs',) of {len(self.devices)} devices, "
+                f"{self.n_padded // len(self.devices)} runs per device{pad}")
+
+
+def _one_run(f: Callable) -> Callable:
+    """``f`` of one run as a function of a run axis of length 1 (the axis is dropped on the way
+    in and restored on the way out, inside the one jitted program)."""
+
+    def g(*args):
+        out = f(*jax.tree.map(lambda x: x[0], args))
+        return jax.tree.map(lambda x: x[None], out)
+
+    return g
+
+
+# Fields that change neither the compiled program nor what it computes per epoch.
+_LOOP_ONLY = tuple(k for k in RESUMABLE_KEYS if k != "backend" and k != "n_test_rollouts")
+_LAST_PROGRAM: dict[str, Any] = {}
+
+
+def program_for(runs: Sequence[Config], devices: Sequence[Any] | None = None,
+                vmapped: bool = True):
+    """Env, trainer and :class:`Program` of runs that differ only in traced keys and seeds.
+
+    Shapes and the algorithm come from the first run's config; everything that differs between
+    runs is in each run's hyperparameters and key. The last program is kept for the life of the
+    process, so a sweep resumed in the same process (a notebook, a test) reuses its compilation.
+    """
+    devices = list(devices or jax.devices())
+    default = Config()
+    shared = dataclasses.replace(
+        runs[0], seed=0, **{k: getattr(default, k) for k in (*_LOOP_ONLY, *TRACED_KEYS)})
+    for c in runs[1:]:
+        other = dataclasses.replace(
+            c, seed=0, **{k: getattr(default, k) for k in (*_LOOP_ONLY, *TRACED_KEYS)})
+        if other != shared:
+            diff = [f.name for f in dataclasses.fields(Config)
+                    if getattr(other, f.name) != getattr(shared, f.name)]
+            raise ConfigError(f"the runs of one program may differ only in traced keys and "
+                              f"seeds, not in {', '.join(diff)}")
+    key = (to_yaml(shared), len(runs), tuple(str(d) for d in devices), vmapped)
+    if _LAST_PROGRAM.get("key") != key:
+        _LAST_PROGRAM.clear()  # one at a time: a program holds its env and compiled code
+        env, trainer = build(runs[0])
+        _LAST_PROGRAM.update(key=key, value=(env, trainer,
+                                             Program(trainer, len(runs), devices, vmapped)))
+    return _LAST_PROGRAM["value"]
+
+
+# ------------------------------------------------------------------ metrics rows
+
+def epoch_metric_names() -> tuple[str, ...]:
+    """The fields of the trainer's ``EpochMetrics``, in declaration order."""
+    from .trainer import EpochMetrics
+
+    return tuple(f.name for f in dataclasses.fields(EpochMetrics))
+
+
+def csv_fields() -> tuple[str, ...]:
+    """The columns of metrics.csv: the loop's epoch and wall_time plus every EpochMetrics field."""
+    return metric_fields(epoch_metric_names())
+
+
+def loss_fields(fields: Iterable[str]) -> tuple[str, ...]:
+    """The columns a NaN or inf stops a run on: the losses and the critic's mean Q. Other
+    diagnostics may be NaN by design (e.g. a mean over no samples)."""
+    return tuple(f for f in fields if f.endswith("_loss") or f == "q_mean")
+
+
+def epoch_row(epoch: int, metrics: Any, wall_time: float) -> dict[str, int | float]:
+    """The metrics.csv row of one run after ``epoch``: every field of ``metrics`` (an
+    ``EpochMetrics`` of host scalars) plus epoch and wall time, in :func:`csv_fields` order."""
+    values = {f.name: np.asarray(getattr(metrics, f.name)) for f in dataclasses.fields(metrics)}
+    row: dict[str, int | float] = {"epoch": epoch, "wall_time": round(wall_time, 3)}
+    for k, v in values.items():
+        if v.shape != ():
+            raise ValueError(f"EpochMetrics.{k} has shape {v.shape}; one run's are scalars")
+        row[k] = int(v) if v.dtype.kind in "iub" else float(v)
+    return {k: row[k] for k in metric_fields(values)}
+
+
+def nonfinite_losses(row: Mapping[str, Any]) -> list[str]:
+    """The loss columns of ``row`` that are NaN or inf."""
+    return [k for k in loss_fields(row) if not math.isfinite(row[k])]
+
+
+def last_good_checkpoint(ckpt: Checkpointer) -> str:
+    """The sentence a diverged run ends with: where its last good checkpoint is."""
+    last = ckpt.latest_epoch()
+    if last is None:
+        return "No checkpoint was written yet."
+    return f"The last good checkpoint (epoch {last}) is kept in {ckpt.directory}"
+
+
+def is_checkpoint_epoch(cfg: Config, epoch: int) -> bool:
+    """Whether the latest state is saved after ``epoch`` (1-based): every ``checkpoint_every``
+    epochs and after the last one."""
+    return epoch % cfg.checkpoint_every == 0 or epoch == cfg.epochs
+
+
+def plot_title(cfg: Config) -> str:
+    lam = "" if (cfg.lambda_r, cfg.lambda_h) == (1.0, 1.0) else (
+        f" lambda_r={cfg.lambda_r:g} lambda_h={cfg.lambda_h:g}")
+    return f"{cfg.env} {cfg.algo} seed {cfg.seed}{lam}"
+
+
+class RunOutputs:
+    """The files of one run in ``run_dir`` and what every epoch adds to them.
+
+    config.yaml and run_info.json (:meth:`start`), metrics.csv (a row per epoch), success.png,
+    the best-policy checkpoint (ties go to the later epoch, as in baselines) and TensorBoard
+    scalars. ``latest=True`` (a run's own layout): ``ckpt`` also keeps the run's latest state.
+    """
+
+    def __init__(self, cfg: Config, run_dir: str | Path, latest: bool = True) -> None:
+        self.cfg = cfg
+        self.run_dir = Path(run_dir)
+        self.ckpt = Checkpointer(self.run_dir, latest=latest)
+        try:
+            self.csv = MetricsCSV(self.run_dir / "metrics.csv", csv_fields(), extend=True)
+        except ValueError as e:
+            raise ConfigError(f"cannot continue {self.run_dir}: {e}") from None
+        self.tb = TBWriter(self.run_dir) if cfg.tensorboard else None
+        self.best = -1.0
+
+    def start(self, info: Mapping[str, Any]) -> None:
+        """Begin the run from epoch 0: write config.yaml and run_info.json, and drop any rows
+        and best policy a run killed before its first checkpoint left."""
+        self.rewind(0, -1.0)
+        write_text_atomic(self.run_dir / "config.yaml", to_yaml(self.cfg))
+        write_json_atomic(self.run_dir / "run_info.json", info)
+
+    def rewind(self, epoch: int, best: float) -> None:
+        """Continue after ``epoch`` (a resume): later rows and best policies are abandoned."""
+        self.ckpt.discard_after(epoch)
+        self.csv.truncate_after(epoch)
+        self.best = best
+
+    def record(self, row: Mapping[str, Any], policy: Callable[[], Any]) -> bool:
+        """Append ``row``; save ``policy()`` when its test success is the best so far; replot.
+        Returns whether it was a new best."""
+        self.csv.append(row)
+        if self.tb is not None:
+            self.tb.scalars(row, step=int(row["env_steps"]))
+        new_best = row["test_success"] >= self.best  # baselines saves on >= (ties keep the latest)
+        if new_best:
+            self.best = float(row["test_success"])
+            self.ckpt.save_best(int(row["epoch"]), policy(),
+                                {"test_success": self.best, "epoch": int(row["epoch"])})
+        plot_success(self.run_dir / "metrics.csv", self.run_dir / "success.png",
+                     plot_title(self.cfg))
+        return new_best
+
+    def close(self) -> None:
+        self.ckpt.close()
+        if self.tb is not None:
+            self.tb.close()
+
+
+def restore_or_refuse(ckpt: Checkpointer, template: Any, directory: Path) -> tuple[int, Any, dict]:
+    """``ckpt.restore_latest(template)``; any failure to read it is a one-line ConfigError (a
+    resume of a directory whose checkpoint is damaged or from another configuration)."""
+    try:
+        return ckpt.restore_latest(template)
+    except Exception as e:  # orbax, tensorstore and our own template checks raise many kinds
+        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise ConfigError(f"cannot resume {directory}: its latest checkpoint is unusable: "
+                          f"{msg[:300]}") from None
+
+
+# ------------------------------------------------------------------ the plan
+
+@dataclass(frozen=True)
+class Plan:
+    """What :func:`drive` runs and where it writes.
+
+    Attributes:
+      runs: one resolved Config per run, each with its own ``run_dir`` and seed; they may
+        differ only in traced keys (``config.TRACED_KEYS``) and seeds.
+      out_dir: the run directory (one run) or the sweep directory.
+      sweep: the sweep layout (a spec, a summary and one stacked latest checkpoint) rather than
+        a run's own; a sweep is vmapped even over one run.
+      resume: continue ``out_dir`` from its latest checkpoint.
+      varies: the sweep's varying keys as written to ``sweep.yaml``: ``lambdas`` (pairs),
+        ``seeds`` and ``grid`` (``{field: values}``).
+      names: each run's directory name under a sweep directory.
+      base: the config the runs are made from (a sweep's ``base_config.yaml``, its run_dir the
+        sweep directory); a single run's own.
+    """
+
+    runs: tuple[Config, ...]
+    out_dir: Path
+    base: Config
+    sweep: bool = False
+    resume: bool = False
+    varies: Mapping[str, Any] = field(default_factory=dict)
+    names: tuple[str, ...] = ()
+
+    @classmethod
+    def single(cls, cfg: Config) -> Plan:
+        """One run in its own directory (``cfg`` resolved; ``resume`` set to continue it)."""
+        out = Path(cfg.resume if cfg.resume is not None else cfg.run_dir)
+        return cls((cfg,), out, cfg, sweep=False, resume=cfg.resume is not None, names=("",))
+
+
+def check_out_dir(plan: Plan) -> None:
+    """The output directory is usable for the plan (before anything is built or written)."""
+    marker = SPEC_FILE if plan.sweep else "config.yaml"
+    what = "sweep_dir" if plan.sweep else "run_dir"
+    if plan.resume:
+        check_resume_dir(plan.out_dir, marker=marker)
+    else:
+        check_fresh_dir(plan.out_dir, what)
+
+
+# ------------------------------------------------------------------ the loop
+
+def _row_of(metrics: Any, i: int) -> Any:
+    return jax.tree.map(lambda x: x[i], metrics)
+
+
+def drive(plan: Plan, argv: Sequence[str] = (), prog: str = "", log=print,
+          devices: Sequence[Any] | None = None) -> dict:
+    """Run (or continue) every run of ``plan`` as one program.
+
+    Returns ``{"out_dir", "names", "rows" (each run's last metrics row, or {}), "best" (each
+    run's best test success), "diverged" ({name: epoch}), "program", "summary" (sweep: the
+    summary's runs and settings)}``.
+    """
+    from .trainer import hparams_from_config
+
+    argv = list(argv)
+    runs, cfg, n = plan.runs, plan.runs[0], len(plan.runs)
+    names = list(plan.names)
+    check_out_dir(plan)
+    env, trainer, program = program_for(runs, devices, vmapped=plan.sweep)
+    hps = program.put(stack([hparams_from_config(c) for c in runs]))
+    keys = program.put(stack([jax.random.PRNGKey(c.seed) for c in runs]))
+    ts = program.init(keys, hps)
+
+    if not plan.resume:
+        make_dir(plan.out_dir, "sweep_dir" if plan.sweep else "run_dir")
+    outs = [RunOutputs(c, Path(c.run_dir), latest=not plan.sweep) for c in runs]
+    ckpt = Checkpointer(plan.out_dir, best=False) if plan.sweep else outs[0].ckpt
+    info = run_info(cfg, argv, prog)
+    if plan.sweep:
+        per_run = tree_bytes(ts) // program.n_padded
+        info.update(runs=names, n_runs=n, n_padded=program.n_padded,
+                    program=program.describe(), state_bytes_per_run=per_run,
+                    state_bytes=per_run * program.n_padded)
+
+    def saved(ts):  # the latest checkpoint: a sweep's stacked state, a run's own
+        host = program.unpad(ts)
+        return host if plan.sweep else jax.tree.map(lambda x: x[0], host)
+
+    start, wall0, diverged = 0, 0.0, {}
+    if plan.resume and ckpt.latest_epoch() is not None:
+        start, state, meta = restore_or_refuse(ckpt, saved(ts), plan.out_dir)
+        if plan.sweep and meta.get("runs") != names:
+            raise ConfigError(f"cannot resume {plan.out_dir}: its checkpoint holds runs "
+                              f"{meta.get('runs')}, not {names}")
+        ts = program.put(state if plan.sweep else stack([state]))
+        del state
+        try:
+            wall0 = float(meta["wall_time"])
+            bests = meta["best_success"]
+            bests = [float(b) for b in (bests if plan.sweep else [bests])]
+            diverged = {k: int(v) for k, v in meta.get("diverged", {}).items()
+                        if int(v) <= start}
+        except (KeyError, TypeError, ValueError, AttributeError) as e:
+            raise ConfigError(f"cannot resume {plan.out_dir}: its checkpoint's metadata is "
+                              f"damaged ({type(e).__name__}: {e})") from None
+        for o, b in zip(outs, bests, strict=True):
+            o.rewind(start, b)
+        log(f"resuming {plan.out_dir} after epoch {start}")
+    else:
+        if plan.resume:  # killed before its first checkpoint: start over
+            log(f"{plan.out_dir} has no checkpoint yet; starting it over")
+        if plan.sweep:
+            # The spec file goes last of the two: it is what marks a directory as a sweep's.
+            write_text_atomic(plan.out_dir / BASE_CONFIG_FILE, to_yaml(plan.base))
+            write_text_atomic(plan.out_dir / SPEC_FILE, summary.spec_yaml(plan.varies, names))
+            write_json_atomic(plan.out_dir / "run_info.json", info)
+            for o, name in zip(outs, names, strict=True):
+                o.start({**info, "sweep_dir": str(plan.out_dir), "run": name})
+        else:
+            outs[0].start(info)
+    if plan.sweep:
+        summary.write(plan, diverged)
+
+    steps_per_epoch = cfg.n_cycles * cfg.num_envs * env.episode_length * n
+    bar = None
+    if cfg.progress:
+        from tqdm.auto import tqdm
+
+        desc = f"{cfg.env} {cfg.algo}" + (f" x{n} runs" if plan.sweep else "")
+        bar = tqdm(total=cfg.epochs, initial=start, desc=desc, unit="epoch",
+                   dynamic_ncols=True, file=sys.stderr)
+    t_start = time.perf_counter() - wall0
+    last_rows: list[dict] = [{} for _ in runs]
+    for epoch in range(start, cfg.epochs):
+        t0 = time.perf_counter()
+        ts, m = program.epoch(ts, hps)
+        m = jax.device_get(m)
+        dt = time.perf_counter() - t0
+        host: dict[str, Any] = {}
+
+        def policies(ts=ts, host=host):
+            # Every run's learner state, fetched once and only when some run has a new best;
+            # sliced per run on the host (see Program.unpad).
+            if "ddpg" not in host:
+                host["ddpg"] = jax.device_get(ts.ddpg)
+            return host["ddpg"]
+
+        wall = time.perf_counter() - t_start
+        tests = []
+        for i, (o, name) in enumerate(zip(outs, names, strict=True)):
+            if name in diverged:
+                continue
+            row = epoch_row(epoch + 1, _row_of(m, i), wall)
+            bad = nonfinite_losses(row)
+            if bad:
+                diverged[name] = epoch + 1
+                if not plan.sweep:
+                    raise TrainingDiverged(
+                        f"{', '.join(bad)} became non-finite in epoch {epoch + 1}; stopped. "
+                        f"{last_good_checkpoint(ckpt)}")
+                log(f"{name}: {', '.join(bad)} became non-finite in epoch {epoch + 1}; its "
+                    f"outputs stop at epoch {epoch}, the other runs go on")
+                continue
+            o.record(row, lambda i=i: _row_of(policies(), i))
+            last_rows[i] = row
+            tests.append(row["test_success"])
+        if len(diverged) == n:
+            raise TrainingDiverged(
+                f"the losses of every run became non-finite (the last in epoch {epoch + 1}); "
+                f"stopped. {last_good_checkpoint(ckpt)}")
+        if is_checkpoint_epoch(cfg, epoch + 1):
+            bests = [o.best for o in outs]
+            meta = ({"best_success": bests, "wall_time": round(wall, 3),
+                     "diverged": diverged, "runs": names} if plan.sweep else
+                    {"best_success": bests[0], "wall_time": round(wall, 3)})
+            ckpt.save_latest(epoch + 1, saved(ts), meta)
+        if plan.sweep:
+            summary.write(plan, diverged)
+        if bar is not None:
+            post = {"env_steps": int(np.max(m.env_steps)), "sps": f"{steps_per_epoch / dt:.0f}",
+                    "test": f"{np.mean(tests):.2f}"}
+            if plan.sweep:
+                post["best"] = f"{max(tests):.2f}"
+            bar.set_postfix(post)
+            bar.update(1)
+    if bar is not None:
+        bar.close()
+    for o, i in zip(outs, range(n), strict=True):
+        if not last_rows[i]:
+            rows = o.csv.rows()
+            last_rows[i] = rows[-1] if rows else {}
+        o.close()
+    if plan.sweep:
+        ckpt.close()
+    result = {"out_dir": str(plan.out_dir), "names": names, "rows": last_rows,
+              "best": [o.best for o in outs], "diverged": diverged,
+              "program": program.describe()}
+    if plan.sweep:
+        result["summary"] = summary.collect(plan, diverged)
+    return result
+
