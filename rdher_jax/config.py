@@ -384,25 +384,27 @@ def unknown_key(key: str, valid: Sequence[str]) -> ConfigError:
     return ConfigError(f"unknown key {key!r}{hint}; run with --help to list the keys")
 
 
-def split_args(argv: Sequence[str], extra: Sequence[str] = (), prefixes: Sequence[str] = ()
-               ) -> tuple[dict[str, str], dict[str, str]]:
+def split_args(argv: Sequence[str], extra: Sequence[str] = (), prefixes: Sequence[str] = (),
+               config_keys: bool = True) -> tuple[dict[str, str], dict[str, str]]:
     """``key=value`` tokens -> (config fields, other keys); later tokens win.
 
     The other keys are those in ``extra`` and any starting with one of ``prefixes`` (e.g.
-    ``grid.``). Every other key is a one-line ConfigError naming the closest valid key. This is
-    the parser of every command line of the project (train, sweep, evaluate).
+    ``grid.``); ``config_keys=False`` takes no config field. Every other key is a one-line
+    ConfigError naming the closest valid key. This is the parser of every command line of the
+    project (train, sweep, evaluate).
     """
     fields: dict[str, str] = {}
     other: dict[str, str] = {}
+    valid = [*extra, *(FIELD_NAMES if config_keys else ())]
     for tok in argv:
         key, value = split_token(tok)
         if key in extra or any(key.startswith(p) for p in prefixes):
             other[key] = value
-        elif key in FIELD_NAMES:
+        elif config_keys and key in FIELD_NAMES:
             fields[key] = value
         else:
             # Checked before OmegaConf so that dotted or hydra-style keys get the same message.
-            raise unknown_key(key, [*extra, *FIELD_NAMES])
+            raise unknown_key(key, valid)
     return fields, other
 
 

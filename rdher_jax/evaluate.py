@@ -19,7 +19,7 @@ import numpy as np
 
 from . import render
 from .checkpoint import Checkpointer
-from .config import ConfigError, from_yaml, main_guard
+from .config import ConfigError, from_yaml, main_guard, split_args
 from .render import DEFAULT_SIZE, RenderError
 
 USAGE = ("usage: python -m rdher_jax.evaluate <run dir> [episodes=100] [seed=0] "
@@ -36,13 +36,9 @@ def parse(argv: list[str]) -> tuple[Path, dict]:
     run_dir = Path(argv[0])
     opts = {"episodes": "100", "seed": "0", "backend": None, "scene": None, "video": None,
             "video_episodes": "3", "width": str(DEFAULT_SIZE), "height": str(DEFAULT_SIZE)}
-    given = set()
-    for tok in argv[1:]:
-        key, eq, val = tok.partition("=")
-        if not eq or key not in opts:
-            raise ConfigError(f"bad argument {tok!r}; {USAGE}")
-        opts[key] = val
-        given.add(key)
+    _, given_opts = split_args(argv[1:], extra=tuple(opts), config_keys=False)
+    opts.update(given_opts)
+    given = set(given_opts)
     for key in ("episodes", "seed", *VIDEO_OPTS):
         if not opts[key].isdigit() or (key != "seed" and int(opts[key]) < 1):
             raise ConfigError(f"{key} must be a positive integer, got {opts[key]!r}")

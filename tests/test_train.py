@@ -290,3 +290,13 @@ def test_target_every_moves_targets_inside_the_cycle(tmp_path):
     start, end = one_cycle(target_every=3)  # after the 3rd step: neither start nor end
     assert not same(end.target_critic_params, start.critic_params)
     assert not same(end.target_critic_params, end.critic_params)
+
+
+def test_no_third_party_import_chatter():
+    """MJX's Warp-absence notices and gymnasium-robotics' Adroit notice are dropped at their
+    source; anything else those imports print would still show."""
+    code = ("import rdher_jax.train, rdher_jax.sweep, rdher_jax.evaluate, rdher_jax.envs, "
+            "rdher_jax.envs.native, gymnasium_robotics, brax; print('ok')")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    assert p.stdout == "ok\n" and p.stderr == "", (p.stdout, p.stderr)
