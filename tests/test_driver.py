@@ -1,0 +1,105 @@
+"""The run driver: sweeps over any traced key (grid.<key>), what may and may not vary in one
+program, and GPU-sized runs at config time."""
+
+import csv
+import dataclasses
+
+import jax
+import numpy as np
+import pytest
+
+from rdher_jax import driver
+from rdher_jax import sweep as sweep_mod
+from rdher_jax import train as train_mod
+from rdher_jax.config import TRACED_KEYS, Config, ConfigError, parse_args, resolve
+
+TINY = dict(env="FetchReach", algo="rdher", n_cycles=2, n_batches=4, batch_size=32,
+            buffer_size=2000, num_envs=2, n_test_rollouts=2, hidden=32, progress=False, epochs=2)
+TINY_ARGS = [f"{k}={v}" for k, v in TINY.items()]
+
+
+def read_rows(path):
+    with open(path, newline="") as f:
+        return [{k: v for k, v in r.items() if k != "wall_time"} for r in csv.DictReader(f)]
+
+
+def test_grid_sweep_runs_each_value_as_a_separate_run_would(tmp_path):
+    d = tmp_path / "sweep"
+    plan = sweep_mod.parse_sweep_args([*TINY_ARGS, "grid.dher_fraction=[0.8,0.2]",
+                                       "grid.noise_eps=[0.1]", "seeds=1", f"sweep_dir={d}"])
+    names = ["dher_fraction0.8_noise_eps0.1_lr2_lh1_s0", "dher_fraction0.2_noise_eps0.1_lr2_lh1_s0"]
+    assert list(plan.names) == names
+    assert [(c.dher_fraction, c.noise_eps) for c in plan.runs] == [(0.8, 0.1), (0.2, 0.1)]
+    out = sweep_mod.sweep(plan, log=lambda *a: None)
+    assert out["runs"] == names
+    rows = list(csv.DictReader(open(d / "summary.csv")))
+    assert [(r["dher_fraction"], r["noise_eps"]) for r in rows] == [("0.8", "0.1"), ("0.2", "0.1")]
+    md = (d / "summary.md").read_text()
+    assert "| dher_fraction | noise_eps | lambda_r | lambda_h | seeds |" in md
+    # The run with the non-default value equals a train run given that value directly.
+    cfg = resolve(Config(**{**TINY, "dher_fraction": 0.2, "noise_eps": 0.1,
+                            "run_dir": str(tmp_path / "one")}))
+    train_mod.train(cfg, log=lambda *a: None)
+    a, b = read_rows(d / names[1] / "metrics.csv"), read_rows(tmp_path / "one" / "metrics.csv")
+    assert len(a) == len(b) == 2
+    for ra, rb in zip(a, b, strict=True):
+        for k in ra:
+            np.testing.assert_allclose(float(ra[k]), float(rb[k]), rtol=1e-3, atol=1e-5,
+                                       equal_nan=True, err_msg=k)
+    # Resuming reads the grid back from sweep.yaml; changing it is refused.
+    again = sweep_mod.parse_sweep_args([f"resume={d}", "epochs=3"])
+    assert again.names == plan.names and again.runs[1].dher_fraction == 0.2
+    with pytest.raises(ConfigError, match="cannot change the grid"):
+        sweep_mod.parse_sweep_args([f"resume={d}", "grid.dher_fraction=[0.5]"])
+
+
+@pytest.mark.parametrize("args, fragment", [
+    (["grid.hidden=[32,64]"], "hidden fixes the compiled program"),
+    (["grid.algo=[her,dher]"], "algo fixes the compiled program"),
+    (["grid.num_envs=[1,2]"], "a sweep over it is separate runs"),
+    (["grid.seed=[1,2]"], "sweep seeds with seeds="),
+    (["grid.dher_frac=[0.1]"], "unknown key 'grid.dher_frac' (did you mean grid.dher_fraction?)"),
+    (["grid.dher_fraction=0.2"], "must be a non-empty list"),
+    (["grid.dher_fraction=[0.2,0.2]"], "duplicate runs"),
+    (["grid.dher_fraction=[2]"], "dher_fraction must be in [0, 1]"),
+    (["grid.polyak=[abc]"], "invalid value 'abc' for polyak"),
+    (["grid.dher_fraction=[0.2]", "dher_fraction=0.3"], "not both"),
+    (["grid.lambda_r=[1,2]", "lambdas=[[1,1]]"], "not both"),
+])
+def test_bad_grids_are_one_line_errors(args, fragment, capsys, tmp_path):
+    with pytest.raises(SystemExit) as e:
+        sweep_mod.main([*args, f"sweep_dir={tmp_path / 'x'}"])
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("error: ") and fragment in err, err
+    assert not (tmp_path / "x").exists()
+
+
+def test_traced_keys_are_exactly_what_reaches_the_hyperparameters():
+    from rdher_jax.trainer import hparams_from_config
+
+    base = resolve(parse_args(["algo=rdher", "env=FetchPush"]))
+    ref = jax.tree.leaves(hparams_from_config(base))
+    for key in TRACED_KEYS:
+        v = getattr(base, key)
+        new = dataclasses.replace(base, **{key: v + 1 if key == "replay_k" else v * 0.5})
+        leaves = jax.tree.leaves(hparams_from_config(new))
+        assert any(float(a) != float(b) for a, b in zip(ref, leaves, strict=True)), key
+    # Runs that differ in anything else are not one program.
+    with pytest.raises(ConfigError, match="differ only in traced keys and seeds, not in hidden"):
+        driver.program_for([base, dataclasses.replace(base, hidden=64)])
+
+
+@pytest.mark.parametrize("algo", ["ddpg", "her", "cher", "rdher"])
+def test_a_4096_env_run_has_the_state_eval_shape_predicts(algo):
+    """GPU-sized runs pass config checks for every algorithm, and the state they allocate is the
+    size ``jax.eval_shape`` gives (the README's memory figures are read this way)."""
+    cfg = resolve(parse_args([f"algo={algo}", "num_envs=4096", "buffer_size=204800",
+                              "hidden=16", "layers=1"]))
+    _, trainer = driver.build(cfg)
+    shape = jax.eval_shape(trainer.init, jax.random.PRNGKey(0), trainer.hparams)
+    state = jax.jit(trainer.init)(jax.random.PRNGKey(0), trainer.hparams)
+    assert driver.tree_bytes(state) == driver.tree_bytes(shape)
+    assert state.buffer.obs.shape[0] == 204800 // 50
+    if algo == "rdher":  # the ring holds every match one cycle of 4096 envs can record
+        assert state.relabel.rec_i.shape == (2 * 4096 * 51 * 8,) == (cfg.dher_records,)
