@@ -17,7 +17,7 @@ GYMNASIUM_TASK_NAMES = tuple(TASKS)  # as gymnasium-robotics' Fetch*-v4 (conform
 MOVING_TASK_NAMES = tuple(MOVING_TASKS)  # DHER's Dy-Reaching and Dy-Pushing
 TASK_NAMES = GYMNASIUM_TASK_NAMES + MOVING_TASK_NAMES
 
-# XLA:CPU flags under which MJX is usable on a CPU (see README, "MJX on CPU").
+# XLA:CPU flags under which MJX is usable on a CPU (see docs/performance.md, "MJX on a CPU").
 CPU_XLA_FLAGS = (
     "--xla_cpu_use_fusion_emitters=false",
 )

@@ -70,7 +70,7 @@ class Preset:
 
 
 # Presets change the learner away from the paper-faithful defaults, which stay as the paper ran
-# them. Their values are measured choices: experiments/bench_learning.py and the README say what
+# them. Their values are measured choices: experiments/bench_learning.py and docs/performance.md say what
 # each one bought.
 PRESETS: dict[str, Preset] = {
     "fast": Preset(
@@ -78,7 +78,7 @@ PRESETS: dict[str, Preset] = {
         "cycle (0.8 per env step) on 2x256 networks; TD3's target smoothing and delayed actor, "
         "target networks moved by 1% every 2nd step, no action penalty; a transition whose goal "
         "is exactly the next achieved goal does not bootstrap. Changes the algorithm: see "
-        "README, 'preset=fast'",
+        "docs/performance.md, 'preset=fast'",
         {
             "num_envs": 1,
             "n_batches": 40,

@@ -93,7 +93,7 @@ def test_traced_keys_are_exactly_what_reaches_the_hyperparameters():
 @pytest.mark.parametrize("algo", ["ddpg", "her", "cher", "rdher"])
 def test_a_4096_env_run_has_the_state_eval_shape_predicts(algo):
     """GPU-sized runs pass config checks for every algorithm, and the state they allocate is the
-    size ``jax.eval_shape`` gives (the README's memory figures are read this way)."""
+    size ``jax.eval_shape`` gives (docs/performance.md's memory figures are read this way)."""
     cfg = resolve(parse_args([f"algo={algo}", "num_envs=4096", "buffer_size=204800",
                               "hidden=16", "layers=1"]))
     _, trainer = driver.build(cfg)
