@@ -70,8 +70,8 @@ class Preset:
 
 
 # Presets change the learner away from the paper-faithful defaults, which stay as the paper ran
-# them. Their values are measured choices: experiments/bench_learning.py and docs/performance.md say what
-# each one bought.
+# them. Their values are measured choices: experiments/bench_learning.py and docs/performance.md
+# say what each one bought.
 PRESETS: dict[str, Preset] = {
     "fast": Preset(
         "learn FetchPush within an hour on a 2-core CPU: one episode then 40 gradient steps per "
