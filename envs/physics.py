@@ -18,7 +18,7 @@ import dataclasses
 import mujoco
 import numpy as np
 
-from rdher_jax import tasks as _task_table
+from rdher_jax.tasks import TASK_NAMES
 
 from .scene import load_model
 
@@ -134,7 +134,7 @@ MOVING_TASKS: dict[str, TaskSpec] = {
 }
 ALL_TASKS: dict[str, TaskSpec] = {**TASKS, **MOVING_TASKS}
 # The physics of exactly the tasks of the project's one task table, in its order.
-assert tuple(ALL_TASKS) == _task_table.TASK_NAMES, (tuple(ALL_TASKS), _task_table.TASK_NAMES)
+assert tuple(ALL_TASKS) == TASK_NAMES, (tuple(ALL_TASKS), TASK_NAMES)
 
 
 def check_task(name: str) -> TaskSpec:
