@@ -37,6 +37,7 @@ import yaml
 
 from .config import (
     FIELD_NAMES,
+    RESUMABLE_KEYS,
     TRACED_KEYS,
     Config,
     ConfigError,
@@ -64,7 +65,7 @@ SWEEP_KEYS: dict[str, str] = {
                   "several grid keys make their product. Traced keys: " + ", ".join(TRACED_KEYS),
     "sweep_dir": "output directory; default runs/sweep-<env>-<algo>-<YYYYmmdd-HHMMSS>",
     "resume": "sweep directory to continue from its latest checkpoint; other keys may only "
-              "change epochs, n_test_rollouts, backend, checkpoint_every, tensorboard, progress",
+              "change " + ", ".join(sorted(RESUMABLE_KEYS - {"run_dir", "resume"})),
 }
 GRID = "grid."
 
