@@ -51,9 +51,11 @@ from typing import Any
 
 import numpy as np
 
+from rdher_jax.tasks import PAPER_TASKS
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 DEFAULT_OUT = os.path.join(HERE, "results", "bench_envs.md")
-TASKS = ("FetchReach", "FetchPush", "FetchSlide", "FetchPickAndPlace")
+TASKS = PAPER_TASKS
 SCENES = ("original", "mjx")
 REF_TASK = "FetchPush"
 EPISODE = 50

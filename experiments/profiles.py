@@ -33,14 +33,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from rdher_jax.config import ConfigError
+from rdher_jax.config import Config, ConfigError
 from rdher_jax.runlog import write_text_atomic
+from rdher_jax.tasks import PAPER_TASKS
+from rdher_jax.tasks import TASKS as TASK_TABLE
 
 HERE = Path(__file__).resolve().parent
 DEFAULT_OUT = HERE / "results"
 DEFAULT_RUNS = HERE.parent / "runs" / "experiments"
 
-TASKS: tuple[str, ...] = ("FetchReach", "FetchPush", "FetchSlide", "FetchPickAndPlace")
+TASKS: tuple[str, ...] = PAPER_TASKS
 BENCHMARK_ALGOS: tuple[str, ...] = ("ddpg", "her", "cher", "dher", "rdher")
 # Section 5.2: the pairs {1, 2}, {1, 4}, {0.5, 4} in both orders, as (lambda_r, lambda_h).
 ABLATION_PAIRS: tuple[tuple[float, float], ...] = (
@@ -77,11 +79,12 @@ class Profile:
     default_tasks: tuple[str, ...]
 
 
-# Table 1 of the paper (baselines' HER settings at one MPI worker), written out so that every
-# run's json records them; the trainer's defaults are the same values.
+# Table 1 of the paper (baselines' HER settings at one MPI worker) is the trainer's defaults; the
+# keys that size a run are passed explicitly, so that every run's json records them.
 PAPER_LEARNER: dict[str, Any] = {
-    "num_envs": 2, "n_batches": 40, "batch_size": 256, "buffer_size": 1_000_000,
-    "n_test_rollouts": 10, "hidden": 256, "layers": 3,
+    k: getattr(Config(), k)
+    for k in ("num_envs", "n_batches", "batch_size", "buffer_size", "n_test_rollouts", "hidden",
+              "layers")
 }
 TINY = Budget(2, {"epochs": 2, "n_cycles": 2, "n_batches": 4, "batch_size": 32,
                   "buffer_size": 2000, "n_test_rollouts": 2, "hidden": 32},
@@ -108,8 +111,8 @@ PROFILES: dict[str, Profile] = {
     "paper": Profile(
         "the paper's budget for a GPU: Table 1's settings, 50 epochs (Reach 10 cycles each, "
         "others 50), 5 seeds, every task",
-        {t: Budget(5, {"epochs": 50, "n_cycles": 10 if t == "FetchReach" else 50,
-                       **PAPER_LEARNER}, "the paper's settings (epochs: see profiles.py)")
+        {t: Budget(5, {"epochs": 50, "n_cycles": TASK_TABLE[t].n_cycles, **PAPER_LEARNER},
+                   "the paper's settings (epochs: see profiles.py)")
          for t in TASKS},
         TASKS),
 }

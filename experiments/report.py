@@ -36,55 +36,28 @@ from pathlib import Path
 from typing import Any
 
 from rdher_jax.runlog import write_text_atomic
+from rdher_jax.tasks import PAPER_TASKS, TASKS
 
 HERE = Path(__file__).resolve().parent
 KINDS = ("ablation", "benchmark")
-TASK_ORDER = ("FetchReach", "FetchPush", "FetchSlide", "FetchPickAndPlace")
 LAST = 3  # epochs averaged for "final" success and for the bias diagnostic
 BIAS_COLS = ("bias_real", "bias_her", "bias_dher", "bias_unw_real", "bias_unw_her",
              "bias_unw_dher")
 
-# The paper's Table 2 (best-policy success, %, mean over 5 seeds) and Table 3 (wall clock of
-# one run, one CPU core), per task and algorithm.
-PAPER_TABLE2: dict[str, dict[str, int]] = {
-    "FetchReach": {"ddpg": 100, "her": 88, "cher": 89, "dher": 100, "rdher": 100},
-    "FetchPush": {"ddpg": 15, "her": 39, "cher": 14, "dher": 21, "rdher": 58},
-    "FetchSlide": {"ddpg": 2, "her": 24, "cher": 17, "dher": 41, "rdher": 50},
-    "FetchPickAndPlace": {"ddpg": 8, "her": 25, "cher": 33, "dher": 45, "rdher": 47},
-}
-PAPER_TABLE3: dict[str, dict[str, str]] = {
-    "FetchReach": {"ddpg": "00:50:24", "her": "00:46:55", "cher": "01:45:13",
-                   "dher": "00:11:27", "rdher": "00:11:16"},
-    "FetchPush": {"ddpg": "03:35:59", "her": "03:30:32", "cher": "06:43:20",
-                  "dher": "04:10:14", "rdher": "03:53:16"},
-    "FetchSlide": {"ddpg": "01:53:53", "her": "01:49:18", "cher": "03:41:51",
-                   "dher": "01:57:47", "rdher": "01:43:58"},
-    "FetchPickAndPlace": {"ddpg": "03:34:50", "her": "03:28:32", "cher": "07:50:02",
-                          "dher": "04:06:21", "rdher": "03:50:06"},
-}
-# The pair the paper picked per task from its ablation (section 5.3).
-PAPER_PICK: dict[str, tuple[float, float]] = {
-    "FetchReach": (2.0, 1.0), "FetchPickAndPlace": (2.0, 1.0),
-    "FetchPush": (4.0, 0.5), "FetchSlide": (4.0, 0.5),
-}
 
-# Two-sided 95% quantiles t(0.975, df) of Student's t for df = 1..30.
-T975 = (12.7062, 4.3027, 3.1824, 2.7764, 2.5706, 2.4469, 2.3646, 2.3060, 2.2622, 2.2281,
-        2.2010, 2.1788, 2.1604, 2.1448, 2.1314, 2.1199, 2.1098, 2.1009, 2.0930, 2.0860,
-        2.0796, 2.0739, 2.0687, 2.0639, 2.0595, 2.0555, 2.0518, 2.0484, 2.0452, 2.0423)
+def paper_best(task: str, algo: str | None) -> int | None:
+    """The paper's Table 2 (best-policy success, %, mean over 5 seeds) for ``task`` and ``algo``."""
+    return TASKS[task].paper_table2.get(algo) if task in TASKS else None
 
 
-def t975(df: int) -> float:
-    """t(0.975, df): the table above, then the Cornish-Fisher expansion (error < 1e-4)."""
-    if df < 1:
-        return math.nan
-    if df <= len(T975):
-        return T975[df - 1]
-    z = 1.959963984540054
-    g1 = (z**3 + z) / 4
-    g2 = (5 * z**5 + 16 * z**3 + 3 * z) / 96
-    g3 = (3 * z**7 + 19 * z**5 + 17 * z**3 - 15 * z) / 384
-    return z + g1 / df + g2 / df**2 + g3 / df**3
+def paper_time(task: str, algo: str | None) -> str:
+    """The paper's Table 3 (wall clock of one run, one CPU core), or '-'."""
+    return TASKS[task].paper_table3.get(algo, "-") if task in TASKS else "-"
+
+
+def paper_pick(task: str) -> tuple[float, float] | None:
+    """The (lambda_r, lambda_h) the paper picked for ``task`` from its ablation (section 5.3)."""
+    return TASKS[task].paper_lambdas if task in PAPER_TASKS else None
 
 
 @dataclass(frozen=True)
@@ -104,8 +77,10 @@ def stat(xs: Sequence[float]) -> Stat:
     mean = statistics.fmean(xs)
     if n < 2:
         return Stat(1, mean, math.nan, math.nan, math.nan)
+    from scipy import stats as sps
+
     sd = statistics.stdev(xs)
-    half = t975(n - 1) * sd / math.sqrt(n)
+    half = float(sps.t.ppf(0.975, n - 1)) * sd / math.sqrt(n)
     return Stat(n, mean, sd, mean - half, mean + half)
 
 
@@ -134,7 +109,7 @@ def _float(x: str) -> float:
 
 
 def _task_key(task: str) -> tuple[int, str]:
-    return (TASK_ORDER.index(task) if task in TASK_ORDER else len(TASK_ORDER), task)
+    return (PAPER_TASKS.index(task) if task in PAPER_TASKS else len(PAPER_TASKS), task)
 
 
 def load(profile_dir: Path) -> list[SettingData]:
@@ -363,7 +338,7 @@ def _wall_rows(data: Sequence[SettingData], paper: bool) -> list[list[str]]:
                str(sw.get("runs")), hms(s.meta.get("wall_clock_s")),
                hms(s.meta.get("wall_clock_per_run_s")), hardware(s.meta)]
         if paper:
-            row.append(PAPER_TABLE3.get(s.task, {}).get(s.meta.get("algo"), "-"))
+            row.append(paper_time(s.task, s.meta.get("algo")))
         rows.append(row)
     return rows
 
@@ -387,7 +362,7 @@ def summary_markdown(kind: str, profile: str, data: Sequence[SettingData]) -> st
             cells = []
             for a in algos:
                 mine = pct(stats[(task, a)]["best"].mean) if a in have else "-"
-                ref = PAPER_TABLE2.get(task, {}).get(a)
+                ref = paper_best(task, a)
                 cells.append(mine + (f" ({ref})" if ref is not None else ""))
             rows.append([task, *cells])
         out += _md_table(["task", *[data_label(a, data) for a in algos]], rows)
@@ -422,10 +397,10 @@ def summary_markdown(kind: str, profile: str, data: Sequence[SettingData]) -> st
         vs = vs_her(s, data)
         row += ["-", "-"] if vs is None else [vs_cell(*vs["final"]), vs_cell(*vs["mean"])]
         if bench:
-            ref = PAPER_TABLE2.get(s.task, {}).get(s.meta.get("algo"))
+            ref = paper_best(s.task, s.meta.get("algo"))
             row.append("-" if ref is None else str(ref))
         else:
-            pick = PAPER_PICK.get(s.task)
+            pick = paper_pick(s.task)
             row.append("yes" if s.meta.get("algo") == "rdher" and pick is not None
                        and (s.meta.get("lambda_r"), s.meta.get("lambda_h")) == pick else "")
         row.append(status(s))
@@ -503,8 +478,7 @@ def summary_csv(kind: str, data: Sequence[SettingData]) -> str:
         vs = [math.nan] * 4 if against is None else [*against["final"], *against["mean"]]
         done = [len(v) for v in s.runs.values()] or [0]
         steps = max((int(_float(v[-1]["env_steps"])) for v in s.runs.values()), default=0)
-        paper = PAPER_TABLE2.get(s.task, {}).get(s.meta.get("algo")) if kind == "benchmark" \
-            else None
+        paper = paper_best(s.task, s.meta.get("algo")) if kind == "benchmark" else None
         sw = s.meta.get("sweep", {})
         bi = bias(s)
         w.writerow([_c(x) for x in (

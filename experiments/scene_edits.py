@@ -2,7 +2,8 @@
 
 1. Each edit of ``envs/scene.py`` (alone, then all together) against the original scene, in
    native MuJoCo. Both models are driven through a replica of gymnasium-robotics' ``Fetch*-v4``
-   step (checked bit-exact against ``env.step``) with the same episodes: closed-loop scripted
+   step (checked against ``env.step``; the largest difference is in the results) with the
+   same episodes: closed-loop scripted
    ones (reach; push the object to the goal; grasp, lift and carry; strike the puck) and
    open-loop random-action ones, 50 env steps of 20 substeps. Reported: worst and median over
    episodes of the largest gripper and object deviation over the 50 steps, next to the
@@ -15,7 +16,8 @@
     python experiments/scene_edits.py          # ~1 minute, writes results/scene_edits.md
     python experiments/scene_edits.py --mjx    # + ~1 minute, + 0.5-2 minutes of jit compile
 
-Without ``--mjx`` an MJX section written by an earlier run is kept. Set
+Without ``--mjx`` an MJX section written by an earlier run is kept. Section 4 of the results,
+the findings, is prose written by hand from the tables; every rerun keeps it as it is. Set
 ``JAX_COMPILATION_CACHE_DIR`` to reuse the compiled ``mjx.step`` between runs.
 """
 
@@ -38,6 +40,8 @@ from rdher_jax.envs.physics import TASKS as TASK_SPECS  # noqa: E402
 
 N_STEPS = 50
 N_SUBSTEPS = 20
+REPLICA_STEPS, REPLICA_SEED = 20, 3  # the replica check: random steps after reset(seed=...)
+LAUNCH_XY, LAUNCH_SPEED = (1.2, 0.75), 1.0  # the Slide puck's launch test: start (m), speed (m/s)
 RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "scene_edits.md")
 
 
@@ -308,14 +312,14 @@ def run_all(sim: FetchSim, task: str, eps: list[Episode], **kw) -> list:
     return [rollout(sim, task, ep, **kw) for ep in eps]
 
 
-def check_replica(task: str, n_steps: int = 20) -> float:
+def check_replica(task: str, n_steps: int = REPLICA_STEPS) -> float:
     """Largest |obs difference| between the replica and gymnasium-robotics ``env.step``."""
     import gymnasium as gym
     import gymnasium_robotics
 
     gym.register_envs(gymnasium_robotics)
     env = gym.make(f"{task}-v4").unwrapped
-    env.reset(seed=3)
+    env.reset(seed=REPLICA_SEED)
     sim = FetchSim(scene.load_model(task), task)
     obj = None
     if sim.cfg.has_object:
@@ -449,15 +453,16 @@ def split_contact_model(prism_against: str) -> mujoco.MjModel:
 
 
 def launch_test(models: dict[str, mujoco.MjModel], angles: tuple[float, ...]) -> list[list]:
-    """Puck launched at 1 m/s along the table, no gripper motion: final xy per model."""
+    """Puck launched at LAUNCH_SPEED along the table, no gripper motion: final xy per model."""
     rows = []
     for angle in angles:
         row = [f"{np.degrees(angle):.0f}"]
         for model in models.values():
             sim = FetchSim(model, "FetchSlide")
-            sim.reset(np.array([1.2, 0.75]))
+            sim.reset(np.array(LAUNCH_XY))
             dof = model.jnt_dofadr[model.joint("object0:joint").id]
-            sim.d.qvel[dof : dof + 3] = [np.cos(angle), np.sin(angle), 0.0]
+            sim.d.qvel[dof : dof + 3] = [LAUNCH_SPEED * np.cos(angle), LAUNCH_SPEED * np.sin(angle),
+                                         0.0]
             for _ in range(N_STEPS):
                 sim.step(np.zeros(4))
             row.append(sim.obj)
@@ -681,69 +686,12 @@ def mjx_study(task: str = "FetchPush") -> dict:
 
 MJX_BEGIN, MJX_END = "<!-- mjx-study -->", "<!-- /mjx-study -->"
 
-FINDINGS = """\
-## 4. Findings
-
-**The replica** of `env.step` gives the same observations as gymnasium-robotics (difference 0)
-for all four tasks, so the original rows are the tasks as shipped.
-
-**Sensitivity floor.** Moving the object by 1e-6 m or every action by 1e-6 leaves random-action
-episodes within a few 1e-6 m, except the struck Slide puck (1.4 cm worst). Scripted episodes
-switch phase on thresholds, so a 1e-6 change can shift a phase by a step: worst cases reach
-1.2-1.6 cm of gripper and 1.4-10 cm of object (Push, Slide) while the medians stay near 1e-6 m
-(Slide object: 5e-4 m). Read the edit rows against both the worst and the median floor.
-
-**Pruning** with base pads changes native dynamics by round-off (1e-14 m) except where a dropped
-contact occurs: the upper arm touches the head in one scripted Reach (1.6 mm) and one
-PickAndPlace (0.4 mm) episode that reach high. The Slide object row (2 cm worst, 5e-4 m median)
-is round-off amplified by the puck, the same as its floor.
-
-**The base-floor contact matters** although the base is fixed. Dropping it (our first try, and
-what zeroing the base mesh's margin does: its vertices rest 1.1e-6 m above the floor, inside the
-0.001 margin only) moves the gripper 0.2-1 mm in random episodes (100x the floor) and shifts
-scripted Push by cm. The damping of 1e11 on the base's slide joints is integrated implicitly after
-the constraint solve, so the solver sees a movable base (it puts ~5e4 N on the base dofs) and the
-floor contact changes the weld's solution. Three spheres at the contacting vertices reproduce the
-contact exactly (`_base_pads`).
-
-**Margins** (with the pads): only the gripper link's margin 0.001 -> 0 is left to matter, 2.2 mm in
-the scripted Push episodes where the link touches the table.
-
-**The Slide puck** is the one edit that stays well above the floor: object median 4-5 cm over
-scripted strikes against a floor median of 0.5 mm (worst cases 9-13 cm against a floor of
-3-10 cm). Mass, inertia and inertial frame are equal by construction. More sides (19-128) and other
-radii (inscribed, equal area, circumscribed) leave medians of 2-6 cm. Giving the prism only the
-gripper contacts, or only the table contacts, leaves 1.7 and 2.6 cm medians: both contact pairs
-contribute. The launch test shows why: the puck hops while it slides (contacts on and off,
-vertical speed up to 3 cm/s) and how its rim or vertices catch decides where it stops; at 45
-degrees the cylinder stops at (1.63, 1.18) and the prism slides off the table. The 6.9 cm first
-measured is this contact generation (MuJoCo's cylinder-box against mesh-box, box-cylinder against
-box-mesh), not inertia, margin or polygon resolution. 16 sides stay (N <= 19 for MJX).
-
-**MJX against native MuJoCo.** The cause of the 1.4 cm: MuJoCo 3.11 subtracts Jdot*qvel from the
-reference acceleration of connect and weld rows (`mj_referenceConstraint` -> `mj_Jdotv`); MJX
-3.11 uses -B*vel - K*I*pos only. Evidence, one step from identical states in float64: smooth
-dynamics agree to 4e-12; both solvers reach their own exact optimum; MJX's weld aref equals the
-plain formula to 1e-12 and differs from MuJoCo's by up to 1.9 (MuJoCo's limit and contact rows
-equal the plain formula exactly); putting MuJoCo's weld aref into MJX's problem reproduces
-MuJoCo's qacc to 4e-12 when no robot geom touches anything. Over 50 steps with the gripper in the
-air, MJX differs from MuJoCo by 1.2 cm and from MuJoCo with the term removed by 1.6e-15. No
-model option switches this term off in MuJoCo or on in MJX.
-
-With the fingers on the table a second, smaller cause: MuJoCo makes box-box contacts active from
-1 mm separation (the finger boxes' margin), MJX's box-box collision keeps penetrating points only
-and applies the margin in the constraint. Random episode: 0.8 mm after removing the Jdot*v
-term; with the finger margin 0 in both engines, 2e-5 m (left: MJX places box-box contact points
-on a face, MuJoCo midway between the surfaces). The margin stays 0.001 in the mjx variant:
-zeroing it moves native Push by cm from the original (row "all, finger margin 0": scripted
-median 4 cm, random 1 mm of gripper).
-
-Ruled out: solver, iterations, ls_iterations, tolerance (each engine converges to its optimum);
-cone and impratio (pyramidal, impratio acts on elliptic cones only); noslip (0 iterations);
-Euler with implicit damping, including 1e11 and 1e7, and armature (qacc_smooth equal to 4e-12,
-trajectories equal to 1.6e-15 once the Jdot*v term is removed); weld solref and solimp (equal
-KBIP and D); the unnormalised mocap quaternion (both engines normalise it).
-"""
+# Section 4 holds the findings: prose written from the tables above it, kept in the results file
+# (never here) and carried over verbatim when the tables are regenerated.
+FINDINGS_HEAD = "## 4. Findings"
+FINDINGS_MISSING = (
+    FINDINGS_HEAD + "\n\n(none yet: write what the tables show here; reruns keep this section)\n"
+)
 
 
 def _fmt(x: float) -> str:
@@ -778,7 +726,8 @@ def slide_markdown(study: dict, n: int) -> str:
     for name, v in study["shapes"]:
         out.append(f"| {name} | {_fmt(v[2])} | {_fmt(v[3])} | {_fmt(v[6])} | {_fmt(v[7])} |\n")
     out.append(
-        "\nPuck launched at 1 m/s along the table from (1.2, 0.75), gripper still, 50 steps "
+        f"\nPuck launched at {LAUNCH_SPEED:g} m/s along the table from {LAUNCH_XY}, gripper "
+        f"still, {N_STEPS} steps "
         "(the table ends at y = 1.2; a z near 0.02 means the puck fell off):\n\n"
         "| direction (deg) | cylinder final xyz | 16-prism final xyz |\n|---|---|---|\n"
     )
@@ -823,17 +772,34 @@ def mjx_markdown(study: dict) -> str:
     return "".join(out)
 
 
-def write_report(edits: str, slide: str, mjx_section: str | None, path: str = RESULTS) -> str:
-    """Write the markdown; an MJX section from an earlier ``--mjx`` run is kept if not redone."""
-    if mjx_section is None and os.path.exists(path):
+def replica_markdown(replica: dict[str, float]) -> str:
+    return (
+        "Largest absolute observation difference between the replica and gymnasium-robotics'\n"
+        f"`env.step` over {REPLICA_STEPS} random-action steps from `reset(seed={REPLICA_SEED})` "
+        "(gripper and object position):\n\n| task | difference |\n|---|---|\n"
+        + "".join(f"| {task} | {_fmt(d)} |\n" for task, d in replica.items())
+    )
+
+
+def write_report(replica: str, edits: str, slide: str, mjx_section: str | None,
+                 path: str = RESULTS) -> str:
+    """Write the markdown. An MJX section from an earlier ``--mjx`` run is kept if not redone;
+    the findings section of the existing file is always kept."""
+    findings = FINDINGS_MISSING
+    if os.path.exists(path):
         old = open(path).read()
-        if MJX_BEGIN in old:
+        if mjx_section is None and MJX_BEGIN in old:
             mjx_section = old[old.index(MJX_BEGIN) + len(MJX_BEGIN) : old.index(MJX_END)].strip()
+        if FINDINGS_HEAD in old:
+            findings = old[old.index(FINDINGS_HEAD) :]
     text = (
         "# What the MJX scene edits do to the Fetch dynamics\n\n"
-        "Generated by `experiments/scene_edits.py` (`--mjx` adds the MJX section). Native runs\n"
-        "use a replica of gymnasium-robotics' `Fetch*-v4` step, checked equal to `env.step`.\n\n"
-        "## 1. Each edit against the original scene (native MuJoCo)\n\n"
+        "Sections 1-3 are generated by `experiments/scene_edits.py` (`--mjx` adds the MJX\n"
+        "section); section 4, the findings, is written from them by hand and kept by reruns.\n"
+        "Native runs use a replica of gymnasium-robotics' `Fetch*-v4` step, checked against\n"
+        "`env.step`.\n\n"
+        + replica
+        + "\n## 1. Each edit against the original scene (native MuJoCo)\n\n"
         + edits
         + "\n## 2. The Slide puck\n\n"
         + slide
@@ -844,7 +810,7 @@ def write_report(edits: str, slide: str, mjx_section: str | None, path: str = RE
         + "\n"
         + MJX_END
         + "\n\n"
-        + FINDINGS
+        + findings
     )
     os.makedirs(os.path.dirname(path), exist_ok=True)
     with open(path, "w") as f:
@@ -864,7 +830,7 @@ def main() -> None:
     slide = slide_markdown(slide_study(args.episodes), args.episodes)
     print(f"native studies: {time.perf_counter() - t0:.0f} s")
     mjx_section = mjx_markdown(mjx_study()) if args.mjx else None
-    print(write_report(edits, slide, mjx_section))
+    print(write_report(replica_markdown(replica), edits, slide, mjx_section))
     print(f"total: {time.perf_counter() - t0:.0f} s")
 
 

@@ -207,12 +207,16 @@ def test_help(script):
 
 
 def test_statistics():
-    assert report.t975(1) == 12.7062 and report.t975(4) == 2.7764
-    assert abs(report.t975(31) - 2.0395) < 1e-3 and abs(report.t975(1000) - 1.9623) < 1e-3
     st = report.stat([0.5, 0.7, 0.9])
     assert math.isclose(st.mean, 0.7) and math.isclose(st.std, 0.2)
-    half = 4.3027 * 0.2 / math.sqrt(3)
+    # t(0.975, 2) in closed form: F(t) = 1/2 + t / (2 sqrt(2 + t^2)) inverts to
+    # (2F - 1) / sqrt(2F(1 - F)) = 0.95 / sqrt(0.04875) = 4.302653.
+    half = 0.95 / math.sqrt(0.04875) * 0.2 / math.sqrt(3)
     assert math.isclose(st.lo, 0.7 - half) and math.isclose(st.hi, 0.7 + half)
+    # t(0.975, 1) = tan(0.475 pi) = 12.706205 (Cauchy): 0.3 +- 12.706205 * 0.1 / sqrt(2).
+    two = report.stat([0.2, 0.4])
+    half = math.tan(0.475 * math.pi) * math.sqrt(0.02) / math.sqrt(2)
+    assert math.isclose(two.lo, 0.3 - half) and math.isclose(two.hi, 0.3 + half)
     assert report.ci(st) == "[20.3, 100.0]"  # clipped to [0, 100]
     one = report.stat([0.4])
     assert one.n == 1 and math.isnan(one.std) and report.pm(one) == "40.0 (1 seed)"

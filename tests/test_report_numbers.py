@@ -1,0 +1,192 @@
+"""experiments/report.py's numbers on hand-made metrics CSVs, against values worked out by hand.
+
+The layout is what ``experiments/profiles.py``'s ``collect`` writes:
+``<results>/<kind>/<profile>/<task>/<setting>/s<seed>.csv`` and ``run_info.json``. Every run has
+4 epochs; "final" is the mean of the last 3, "over all epochs" (AUC) the mean of all 4.
+
+The data are chosen so that every expected number has a closed form:
+
+- HER (3 seeds) and RDHER (3 seeds): RDHER's seeds are HER's plus 0.3 at every epoch, permuted,
+  so both have the same per-seed sample variance (0.01, std 0.1) in best, final and AUC, and
+  Welch's degrees of freedom are exactly 2 * (3 - 1) = 4.
+- DDPG (2 seeds): identical seeds, variance 0, so Welch's df against HER is 3 - 1 = 2.
+- CHER (1 seed): no std, no interval, no p.
+
+Student's t with 2 and 4 degrees of freedom has closed forms:
+
+- quantile, df = 2: F(t) = 1/2 + t / (2 sqrt(2 + t^2)) gives
+  t(0.975, 2) = (2 * 0.975 - 1) / sqrt(2 * 0.975 * 0.025) = 0.95 / sqrt(0.04875) = 4.302653;
+  95% half-width for std 0.1 over 3 seeds: 4.302653 * 0.1 / sqrt(3) = 0.248414.
+- two-sided p, with x = |t| / sqrt(t^2 + df): df = 2: p = 1 - x; df = 4: p = 1 - x (3 - x^2) / 2.
+"""
+
+import csv
+import json
+import math
+import sys
+from pathlib import Path
+
+import pytest
+
+EXP = Path(__file__).resolve().parents[1] / "experiments"
+sys.path.insert(0, str(EXP))
+
+import report  # noqa: E402
+
+TASK = "FetchPush"
+EPOCHS = 4
+# test_success per epoch, per seed.
+RUNS = {
+    "her": {0: [0.1, 0.3, 0.4, 0.5],  # best 0.5, final 0.4, AUC 1.3 / 4 = 0.325
+            1: [0.0, 0.2, 0.3, 0.4],  # best 0.4, final 0.3, AUC 0.9 / 4 = 0.225
+            2: [0.2, 0.4, 0.5, 0.6]},  # best 0.6, final 0.5, AUC 1.7 / 4 = 0.425
+    "rdher": {0: [0.5, 0.7, 0.8, 0.9],  # HER s2 + 0.3: best 0.9, final 0.8, AUC 0.725
+              1: [0.4, 0.6, 0.7, 0.8],  # HER s0 + 0.3: best 0.8, final 0.7, AUC 0.625
+              2: [0.3, 0.5, 0.6, 0.7]},  # HER s1 + 0.3: best 0.7, final 0.6, AUC 0.525
+    "ddpg": {0: [0.0, 0.1, 0.1, 0.1],  # best 0.1, final 0.1, AUC 0.075
+             1: [0.0, 0.1, 0.1, 0.1]},
+    "cher": {0: [0.2, 0.2, 0.3, 0.4]},  # best 0.4, final 0.3, AUC 1.1 / 4 = 0.275
+}
+# HER's bias_real per epoch and seed (the others have no bias columns): per seed the mean of the
+# finite values among the last 3 epochs: s0 (1 + 2 + 3) / 3 = 2, s1 (3 + 4 + 5) / 3 = 4,
+# s2 (6 + 6) / 2 = 6 (one epoch had no real rows); over seeds 4 ± 2.
+BIAS = {0: ["9", "1", "2", "3"], 1: ["9", "3", "4", "5"], 2: ["9", "", "6", "6"]}
+META = {  # algo, label, order, (lambda_r, lambda_h)
+    "ddpg": ("ddpg", "DDPG", 0, (1.0, 1.0)),
+    "her": ("her", "HER", 1, (1.0, 1.0)),
+    "cher": ("cher", "CHER", 2, (1.0, 1.0)),
+    "rdher": ("rdher", "RDHER", 4, (4.0, 0.5)),
+}
+HARDWARE = {"processor": "cpu-x", "machine": "x86_64", "cpu_count": 2, "jax_backend": "cpu",
+            "devices": ["cpu:0"], "backend": "mujoco"}
+
+HALF = 0.248414  # 95% half-width, std 0.1 over 3 seeds (module docstring)
+# Welch, final and AUC alike:
+# RDHER vs HER: diff 0.3, se = sqrt(0.01/3 + 0.01/3) = 0.081650, t = 3.674235, df 4,
+#   x = sqrt(13.5 / 17.5) = 0.878310, p = 1 - x * (3 - 27/35) / 2 = 0.021312.
+P_RDHER = 0.021312
+# DDPG vs HER: se = sqrt(0 + 0.01/3) = 0.057735, df 2.
+#   final: diff 0.1 - 0.4 = -0.3, t = -5.196152, p = 1 - 5.196152 / sqrt(29) = 0.035099.
+#   AUC:  diff 0.075 - 0.325 = -0.25, t = -4.330127, p = 1 - 4.330127 / sqrt(20.75) = 0.049414.
+P_DDPG_FINAL, P_DDPG_AUC = 0.035099, 0.049414
+NAN = math.nan
+# summary.csv, by hand; paper_best is the paper's Table 2 for FetchPush (%/100).
+EXPECTED_CSV = {
+    "her": dict(seeds=3, best_mean=0.5, best_std=0.1, best_ci_lo=0.5 - HALF,
+                best_ci_hi=0.5 + HALF, final_mean=0.4, final_std=0.1, final_ci_lo=0.4 - HALF,
+                final_ci_hi=0.4 + HALF, auc_mean=0.325, auc_std=0.1, final_vs_her=NAN,
+                final_vs_her_p=NAN, auc_vs_her=NAN, auc_vs_her_p=NAN, paper_best=0.39,
+                bias_real=4.0, bias_her=NAN),
+    "rdher": dict(seeds=3, best_mean=0.8, best_std=0.1, best_ci_lo=0.8 - HALF,
+                  best_ci_hi=0.8 + HALF, final_mean=0.7, final_std=0.1, final_ci_lo=0.7 - HALF,
+                  final_ci_hi=0.7 + HALF, auc_mean=0.625, auc_std=0.1, final_vs_her=0.3,
+                  final_vs_her_p=P_RDHER, auc_vs_her=0.3, auc_vs_her_p=P_RDHER,
+                  paper_best=0.58, bias_real=NAN),
+    "ddpg": dict(seeds=2, best_mean=0.1, best_std=0.0, best_ci_lo=0.1, best_ci_hi=0.1,
+                 final_mean=0.1, final_std=0.0, final_ci_lo=0.1, final_ci_hi=0.1,
+                 auc_mean=0.075, auc_std=0.0, final_vs_her=-0.3, final_vs_her_p=P_DDPG_FINAL,
+                 auc_vs_her=-0.25, auc_vs_her_p=P_DDPG_AUC, paper_best=0.15),
+    "cher": dict(seeds=1, best_mean=0.4, best_std=NAN, best_ci_lo=NAN, best_ci_hi=NAN,
+                 final_mean=0.3, final_std=NAN, auc_mean=0.275, final_vs_her=-0.1,
+                 final_vs_her_p=NAN, auc_vs_her=-0.05, auc_vs_her_p=NAN, paper_best=0.14),
+}
+# summary.md's per-task rows (percent, one decimal; intervals clipped to [0, 100]).
+EXPECTED_ROWS = [
+    "| FetchPush | DDPG | 1 / 1 | 2 | 4 | 400 | 10.0 ± 0.0 | [10.0, 10.0] | 10.0 ± 0.0 "
+    "| [10.0, 10.0] | 7.5 ± 0.0 | -30.0 (p 0.035) | -25.0 (p 0.049) | 15 | ok |",
+    "| FetchPush | HER | 1 / 1 | 3 | 4 | 400 | 50.0 ± 10.0 | [25.2, 74.8] | 40.0 ± 10.0 "
+    "| [15.2, 64.8] | 32.5 ± 10.0 | - | - | 39 | ok |",
+    "| FetchPush | CHER | 1 / 1 | 1 | 4 | 400 | 40.0 (1 seed) | - | 30.0 (1 seed) | - "
+    "| 27.5 (1 seed) | -10.0 | -5.0 | 14 | ok |",
+    "| FetchPush | RDHER | 4 / 0.5 | 3 | 4 | 400 | 80.0 ± 10.0 | [55.2, 100.0] | 70.0 ± 10.0 "
+    "| [45.2, 94.8] | 62.5 ± 10.0 | +30.0 (p 0.021) | +30.0 (p 0.021) | 58 | ok |",
+]
+
+
+def write_setting(root: Path, kind: str, name: str, runs: dict, algo: str, label: str,
+                  order: int, lambdas: tuple[float, float], bias: dict | None = None,
+                  wall: float = 3723.0) -> None:
+    d = root / kind / "hand" / TASK / name
+    d.mkdir(parents=True)
+    for seed, succ in runs.items():
+        with open(d / f"s{seed}.csv", "w", newline="", encoding="utf-8") as f:
+            w = csv.writer(f)
+            w.writerow(["epoch", "env_steps", "test_success", *(["bias_real"] if bias else [])])
+            for e, s in enumerate(succ):
+                w.writerow([e + 1, 100 * (e + 1), s, *([bias[seed][e]] if bias else [])])
+    meta = {"algo": algo, "label": label, "order": order, "lambda_r": lambdas[0],
+            "lambda_h": lambdas[1], "budget": {"settings": {"epochs": EPOCHS}, "seeds": 3},
+            "sweep": {"name": name, "runs": len(runs)}, "hardware": HARDWARE,
+            "wall_clock_s": wall, "wall_clock_per_run_s": wall / len(runs),
+            "runs": {f"s{s}": {"status": "ok"} for s in runs}}
+    (d / "run_info.json").write_text(json.dumps(meta), encoding="utf-8")
+
+
+@pytest.fixture(scope="module")
+def results(tmp_path_factory):
+    root = tmp_path_factory.mktemp("results")
+    for name, runs in RUNS.items():
+        algo, label, order, lam = META[name]
+        write_setting(root, "benchmark", name, runs, algo, label, order, lam,
+                      bias=BIAS if name == "her" else None)
+    # An ablation: HER and two RDHER pairs, one of them the paper's pick for FetchPush (4, 0.5).
+    write_setting(root, "ablation", "her", RUNS["her"], "her", "HER", 0, (1.0, 1.0))
+    write_setting(root, "ablation", "rdher_lr1_lh2", RUNS["ddpg"], "rdher", "RDHER 1/2", 1,
+                  (1.0, 2.0))
+    write_setting(root, "ablation", "rdher_lr4_lh0.5", RUNS["rdher"], "rdher", "RDHER 4/0.5", 6,
+                  (4.0, 0.5))
+    written = report.write_reports(root)
+    assert len(written) == 8
+    return root
+
+
+def read_csv(path):
+    with open(path, newline="", encoding="utf-8") as f:
+        return {r["setting"]: r for r in csv.DictReader(f)}
+
+
+def section(md: str, title: str) -> list[str]:
+    text = md.split(f"## {title}", 1)[1].split("\n## ", 1)[0]
+    return [ln for ln in text.splitlines() if ln.startswith("| ")][1:]  # rows, no header
+
+
+def test_summary_csv_numbers(results):
+    rows = read_csv(results / "benchmark/hand/summary.csv")
+    assert list(rows) == ["ddpg", "her", "cher", "rdher"]  # by the settings' order
+    for name, want in EXPECTED_CSV.items():
+        r = rows[name]
+        for col, v in want.items():
+            got = float(r[col])
+            if math.isnan(v):
+                assert math.isnan(got), (name, col, got)
+            else:
+                assert got == pytest.approx(v, abs=1.5e-6), (name, col)
+        assert int(r["epochs_min"]) == int(r["epochs_max"]) == EPOCHS
+        assert int(r["env_steps"]) == 400
+        assert float(r["wall_clock_s"]) == 3723.0
+
+
+def test_summary_markdown_rows(results):
+    md = (results / "benchmark/hand/summary.md").read_text(encoding="utf-8")
+    assert section(md, "Per task: best and final success (%)") == EXPECTED_ROWS
+    # Best-policy means beside the paper's Table 2 for FetchPush.
+    assert section(md, "Best-policy test success (%)") == [
+        "| FetchPush | 10.0 (15) | 50.0 (39) | 40.0 (14) | 80.0 (58) |"]
+    # Wall clock: 3723 s = 01:02:03; per run 3723 / 3 = 1241 s = 00:20:41; the paper's Table 3
+    # for HER on FetchPush is 03:30:32.
+    her = [r for r in section(md, "Wall clock") if r.startswith("| FetchPush | her |")]
+    assert len(her) == 1
+    cells = [c.strip() for c in her[0].strip("|").split("|")]
+    assert cells[2:5] == ["3", "01:02:03", "00:20:41"] and cells[-1] == "03:30:32"
+    bias = [r for r in section(md, "Hindsight-bias diagnostic") if "| HER |" in r]
+    assert bias == ["| FetchPush | HER | 1 / 1 | 4.00 ± 2.00 | - | - | - | - | - |"]
+
+
+def test_ablation_marks_the_papers_pick(results):
+    md = (results / "ablation/hand/summary.md").read_text(encoding="utf-8")
+    pick = {r.split("|")[2].strip(): r.rstrip(" |").rsplit("|", 2)[1].strip()
+            for r in section(md, "Per task: best and final success (%)")}
+    # The last-but-one column: 'yes' for the paper's (lambda_r, lambda_h) of FetchPush only.
+    assert pick == {"HER": "", "RDHER 1/2": "", "RDHER 4/0.5": "yes"}
+    rows = read_csv(results / "ablation/hand/summary.csv")
+    assert rows["rdher_lr4_lh0.5"]["paper_best"] == ""  # Table 2 only beside the benchmark
