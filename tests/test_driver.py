@@ -90,7 +90,7 @@ def test_traced_keys_are_exactly_what_reaches_the_hyperparameters():
         driver.program_for([base, dataclasses.replace(base, hidden=64)])
 
 
-@pytest.mark.parametrize("algo", ["ddpg", "her", "cher", "rdher"])
+@pytest.mark.parametrize("algo", ["her", "rdher"])  # config checks: test_config.py
 def test_a_4096_env_run_has_the_state_eval_shape_predicts(algo):
     """GPU-sized runs pass config checks for every algorithm, and the state they allocate is the
     size ``jax.eval_shape`` gives (docs/performance.md's memory figures are read this way)."""
