@@ -132,7 +132,7 @@ def critic_target(
         hparams: supplies lambda_r, lambda_h, gamma.
         discount: optional (B,) factor on q_next in place of gamma: gamma^m for n-step rows,
             whose reward is already the discounted sum of m rewards, and 0 for rows that do not
-            bootstrap (``relabel.with_terminal``); the clip range keeps gamma's bound.
+            bootstrap (``relabel.mark_terminal``); the clip range keeps gamma's bound.
 
     Returns:
         Targets (B,), with gradients stopped.
