@@ -1,8 +1,9 @@
 """The training program: ``make_trainer(cfg, env)`` fixes shapes and returns pure functions.
 
 - ``init(key, hparams) -> TrainState``
-- ``cycle(ts, hparams) -> (ts, CycleMetrics)``: rollout of ``num_envs`` episodes, store, normaliser
-  update, ``n_batches`` relabelled gradient steps, one target update. One compiled function.
+- ``cycle(ts, hparams) -> (ts, metrics)``: rollout of ``num_envs`` episodes, store, normaliser
+  update, ``n_batches`` relabelled gradient steps, one target update. One compiled function;
+  ``metrics`` is a dict of the cycle's means and the bias diagnostic's per-source sums.
 - ``epoch(ts, hparams) -> (ts, EpochMetrics)``: ``lax.scan`` over ``n_cycles`` cycles, then
   ``n_test_rollouts`` deterministic test episodes. This is what the CLI jits once and calls per
   epoch; a sweep vmaps it over seeds and hyperparameters.
@@ -111,8 +112,10 @@ def make_trainer(cfg, env) -> Trainer:
     relabeller = relabel.make_relabeller(cfg, env.compute_reward, capacity_episodes, T, goal_dim)
     updates_per_epoch = cfg.n_cycles * cfg.n_batches
 
-    def rollout(key, ds: DDPGState, hp: HParams, n: int, explore: bool) -> rb.Episode:
-        """``n`` episodes of T steps from fresh resets; returns them episode-major."""
+    def rollout(key, ds: DDPGState, hp: HParams, n: int,
+                explore: bool) -> tuple[rb.Episode, jax.Array]:
+        """``n`` episodes of T steps from fresh resets: the episodes, episode-major, and each
+        one's final-step success, ``(n,)``."""
         k_reset, k_act = jax.random.split(key)
         state = v_reset(jax.random.split(k_reset, n))
 
