@@ -185,12 +185,12 @@ def sample_scan(rl):
 
     @jax.jit
     def f(s, b, p, key):
-        def body(s, x):
+        def body(_, x):
             kk, j = x
-            return rl.sample(kk, s, b, p, j)
+            return None, rl.sample(kk, s, b, p, j)
 
         xs = (jax.random.split(key, N_BATCHES), jnp.arange(N_BATCHES, dtype=jnp.int32))
-        return jax.lax.scan(body, s, xs)
+        return jax.lax.scan(body, None, xs)[1]
 
     return f
 
@@ -310,7 +310,7 @@ def matching_cost(sizes: list[int], repeats: int, min_time: float, args) -> tupl
         update_once = jax.jit(relabeller.update)
 
         key = jax.random.PRNGKey(7)
-        _, batches = sample_scan(relabeller)(state, buf, params, key)
+        batches = sample_scan(relabeller)(state, buf, params, key)
         failed = float(jnp.mean(compute_reward(buf.ag[:, T], buf.g[:, T]) < 0))
         info[size] = {
             "capacity_episodes": cap,
@@ -392,48 +392,32 @@ def cycle_cost(size: int, repeats: int, min_time: float, args, setups: dict) -> 
     states = {"her": (), "cher": (), "dher": dstate, "rdher": dstate}
 
     def make_learn(rl, agent):
-        @jax.jit
-        def learn(ds, rs, buf, hp, key, step0):
-            def body(carry, x):
-                ds, rs = carry
-                k, i = x
-                rs, batch = rl.sample(k, rs, buf, hp.relabel, step0 + i)
-                ds, m = agent.update(ds, batch, hp.ddpg)
-                return (ds, rs), m["critic_loss"]
-
-            xs = (jax.random.split(key, N_BATCHES), jnp.arange(N_BATCHES, dtype=jnp.int32))
-            (ds, rs), m = jax.lax.scan(body, (ds, rs), xs)
-            return ds, rs, m
-
-        return learn
-
-    def make_learn_outside(rl, agent):
-        """*alt*: the relabelling state stays out of the scan carry (DHER's sample leaves it
-        unchanged), so the scan does not carry the whole-buffer index through 40 steps."""
+        """As in ``trainer.cycle``: the scan carries the learner; the relabelling state, which
+        sampling only reads, stays out of the carry."""
 
         @jax.jit
         def learn(ds, rs, buf, hp, key, step0):
             def body(ds, x):
                 k, i = x
-                _, batch = rl.sample(k, rs, buf, hp.relabel, step0 + i)
+                batch = rl.sample(k, rs, buf, hp.relabel, step0 + i)
                 ds, m = agent.update(ds, batch, hp.ddpg)
                 return ds, m["critic_loss"]
 
             xs = (jax.random.split(key, N_BATCHES), jnp.arange(N_BATCHES, dtype=jnp.int32))
             ds, m = jax.lax.scan(body, ds, xs)
-            return ds, rs, m
+            return ds, m
 
         return learn
 
     def make_sample(rl):
         @jax.jit
         def sample(rs, buf, hp, key, step0):
-            def body(rs, x):
+            def body(_, x):
                 k, i = x
-                return rl.sample(k, rs, buf, hp.relabel, step0 + i)
+                return None, rl.sample(k, rs, buf, hp.relabel, step0 + i)
 
             xs = (jax.random.split(key, N_BATCHES), jnp.arange(N_BATCHES, dtype=jnp.int32))
-            return jax.lax.scan(body, rs, xs)
+            return jax.lax.scan(body, None, xs)[1]
 
         return sample
 
@@ -542,8 +526,6 @@ def cycle_cost(size: int, repeats: int, min_time: float, args, setups: dict) -> 
     # Group "main": what the per-algorithm ratios and the suggested DHER changes compare.
     for a in algos:
         bench.add(f"learn/{a}", make_learn(rls[a], agent), ds, states[a], buf, hps[a], key, step0)
-    bench.add("learn/dher_outside", make_learn_outside(rls["dher"], agent), ds, dstate, buf,
-              hps["dher"], key, step0)
     bench.add("dher_update", dher_update, dstate, buf, hps["dher"].relabel, per=k_upd)
     bench.add("dher_update_batched", dher_update_batched, dstate, buf, hps["dher"].relabel,
               per=k_upd * MERGE_EVERY)
@@ -551,7 +533,7 @@ def cycle_cost(size: int, repeats: int, min_time: float, args, setups: dict) -> 
     g = "parts"
     bench.add("parts/learn_her", make_learn(rls["her"], agent), ds, (), buf, hps["her"], key,
               step0, group=g)
-    fixed = rls["her"].sample(key, (), buf, hps["her"].relabel, step0)[1]
+    fixed = rls["her"].sample(key, (), buf, hps["her"].relabel, step0)
     bench.add("update_only", updates_only, ds, fixed, hps["her"], group=g)
     for a in ("her", "dher", "cher"):
         bench.add(f"sample/{a}", make_sample(rls[a]), states[a], buf, hps[a], key, step0,
@@ -600,11 +582,7 @@ def cycle_cost(size: int, repeats: int, min_time: float, args, setups: dict) -> 
             r["repeats_within_target"] = sum(x <= TARGETS[a]
                                              for x in bench.ratios(parts, "learn/her"))
     # Projections for DHER with the suggested changes, from the same repeats (paired).
-    alts = {
-        "state outside the scan carry": ["learn/dher_outside", "dher_update"],
-        f"merge every {MERGE_EVERY} cycles": ["learn/dher", "dher_update_batched"],
-        "both": ["learn/dher_outside", "dher_update_batched"],
-    }
+    alts = {f"merge every {MERGE_EVERY} cycles": ["learn/dher", "dher_update_batched"]}
     out["dher_alternatives"] = {
         name: {"cycle_s": sum(med[n] for n in num),
                "cycle_ratio_to_her": bench.ratio(num, "learn/her"),
@@ -713,7 +691,7 @@ def report(args, cmd: str, info: dict) -> str:
     med, pa = p2["median_s"], p2["per_algo"]
     L += [f"## 2. One cycle's learner work at {p2['size']:.0e} transitions, batch 256, 3x256", "",
           f"`learn`: one jitted scan of {N_BATCHES} x (relabeller.sample + agent.update), the "
-          "relabelling state carried through the scan as in `trainer.cycle`. `cycle`: learn "
+          "relabelling state read by the scan, not carried, as in `trainer.cycle`. `cycle`: learn "
           "plus, for DHER/RDHER, the once-per-cycle matching `update`.", "",
           "| algo | learn (ms) | + matching update (ms) | cycle (ms) | per gradient step (ms) | "
           "learn / HER | cycle / HER (quartiles) | target | met | repeats within target |",
@@ -728,7 +706,7 @@ def report(args, cmd: str, info: dict) -> str:
                  + ("- | - | - |" if tgt is None else
                     f"<= {tgt} | {yes_no(r['target_met'])} | "
                     f"{r['repeats_within_target']} of {p2['repeats']} |"))
-    L += ["", "DHER with the changes suggested below (*alt*: timed in the same group as the rows "
+    L += ["", "DHER with the change suggested below (*alt*: timed in the same group as the rows "
           "above, not library code):", "",
           "| DHER cycle | cycle (ms) | cycle / HER (quartiles) |", "|---|---|---|",
           f"| as in the library | {fmt_ms(pa['dher']['cycle_s'])} | "
@@ -828,11 +806,7 @@ def reading(info: dict) -> list[str]:
         "cumsum and a scatter of keys and points), whatever the number of new episodes. The "
         f"sample alone costs {fmt_ms(med['sample/dher'])} ms per cycle against HER's "
         f"{fmt_ms(med['sample/her'])} (combined rows are gathered for every row, then mixed "
-        "in); "
-        f"the learn scan also carries the {p2['dher_state_bytes'] / 2**20:.0f} MB relabelling "
-        "state through its 40 steps; with the state kept out of the carry the DHER cycle is "
-        f"{alt['state outside the scan carry']['cycle_ratio_to_her']:.2f}x HER (quartiles "
-        f"{quart(alt['state outside the scan carry']['cycle_ratio_to_her_quartiles'])}).")
+        "in).")
     p1_upd = p1["rows"].get(p2["size"], {}).get("update_s")
     if p1_upd is not None and abs(med["dher_update"] / p1_upd - 1) > 0.15:
         alt_ratio = d["learn_ratio_to_her"] + p1_upd / med["learn/her"]
@@ -843,19 +817,14 @@ def reading(info: dict) -> list[str]:
             f"1's figure the DHER cycle would be {alt_ratio:.2f}x "
             "HER; the table keeps the figure measured next to HER's learn.")
     k = p2["merge_every"]
-    both = alt["both"]
     if not (d["target_met"] and rd["target_met"]):
+        m = alt[f"merge every {k} cycles"]
         out.append(
-            f"- To bring DHER/RDHER under {TARGETS['dher']}x (suggestions, not implemented): "
-            f"(1) merge the index every {k} cycles, over the last {k} cycles' episodes at once "
-            f"(measured: {alt[f'merge every {k} cycles']['cycle_ratio_to_her']:.2f}x HER), at "
-            f"the price of matches with the newest episodes appearing up to {k - 1} cycles "
-            "late; (2) keep the relabelling state out of the scan carry in `trainer.cycle` when "
-            "`sample` does not change it (DHER's does not), e.g. a `Relabeller` flag or a "
-            "sample that returns no state; with both: "
-            f"{both['cycle_ratio_to_her']:.2f}x (quartiles "
-            f"{quart(both['cycle_ratio_to_her_quartiles'])})"
-            ".")
+            f"- To bring DHER/RDHER under {TARGETS['dher']}x (a suggestion, not implemented): "
+            f"merge the index every {k} cycles, over the last {k} cycles' episodes at once "
+            f"(measured: {m['cycle_ratio_to_her']:.2f}x HER, quartiles "
+            f"{quart(m['cycle_ratio_to_her_quartiles'])}), at the price of matches with the "
+            f"newest episodes appearing up to {k - 1} cycles late.")
     else:
         m = alt[f"merge every {k} cycles"]
         out.append(

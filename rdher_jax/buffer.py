@@ -1,9 +1,9 @@
 """Pure, fixed-shape, episode-major replay buffer.
 
 The buffer stores whole episodes in a ring of ``capacity // T`` slots. Its state is a pytree of
-fixed-shape arrays with no Python-side counters, so ``init``/``add``/``sample_indices`` can be
-jitted, scanned and vmapped (a sweep vmaps the whole train function over seeds, giving every
-leaf a leading seed axis).
+fixed-shape arrays with no Python-side counters, so ``init``, ``add`` and the samplers built on
+``indices_from_bits`` (``rdher_jax.relabel``) can be jitted, scanned and vmapped (a sweep vmaps
+the whole train function over seeds, giving every leaf a leading seed axis).
 
 Each ``add`` writes whole episodes in one functional update, so a sampled transition
 ``(o_t, a_t, o_{t+1})`` always comes from a single episode.
@@ -182,42 +182,6 @@ def indices_from_bits(
     ep_idx = (bits[0] % n).astype(jnp.int32)
     t = (bits[1] % jnp.uint32(T)).astype(jnp.int32)
     return ep_idx, t
-
-
-def draw_indices(
-    key: jax.Array, num_episodes: jax.Array, T: int, batch_size: int
-) -> tuple[jax.Array, jax.Array]:
-    """Draw episode slots uniformly in ``[0, num_episodes)`` and steps uniformly in ``[0, T)``.
-
-    Args:
-        key: PRNG key.
-        num_episodes: int32 scalar (may be traced).
-        T: episode horizon (static).
-        batch_size: number of draws (static).
-
-    Returns:
-        ``(ep_idx, t)``, two int32 arrays of shape ``(batch_size,)``.
-    """
-    bits = jax.random.bits(key, (2, batch_size), jnp.uint32)
-    return indices_from_bits(bits, num_episodes, T)
-
-
-def sample_indices(
-    key: jax.Array, state: BufferState, batch_size: int
-) -> tuple[jax.Array, jax.Array]:
-    """Sample transition indices uniformly over the stored episodes.
-
-    Args:
-        key: PRNG key.
-        state: the buffer.
-        batch_size: number of transitions (static).
-
-    Returns:
-        ``(ep_idx, t)``: int32 ``(batch_size,)`` arrays, ``ep_idx`` in ``[0, num_episodes)``
-        and ``t`` in ``[0, T)``; transition ``i`` is ``obs[ep_idx[i], t[i]]`` ->
-        ``obs[ep_idx[i], t[i] + 1]`` under ``action[ep_idx[i], t[i]]``.
-    """
-    return draw_indices(key, state.num_episodes, state.horizon, batch_size)
 
 
 def bytes_per_transition(

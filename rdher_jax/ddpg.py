@@ -108,7 +108,6 @@ class DDPG(NamedTuple):
     critic_loss: Callable[..., tuple[jax.Array, jax.Array]]
     actor_loss: Callable[[Params, DDPGState, Batch, HParams], jax.Array]
     update: Callable[..., tuple[DDPGState, dict[str, jax.Array]]]
-    update_many: Callable[[DDPGState, Batch, HParams], tuple[DDPGState, dict[str, jax.Array]]]
     target_update: Callable[..., DDPGState]
 
 
@@ -132,7 +131,7 @@ def critic_target(
         hparams: supplies lambda_r, lambda_h, gamma.
         discount: optional (B,) factor on q_next in place of gamma: gamma^m for n-step rows,
             whose reward is already the discounted sum of m rewards, and 0 for rows that do not
-            bootstrap (``relabel.with_terminal``); the clip range keeps gamma's bound.
+            bootstrap (``relabel.mark_terminal``); the clip range keeps gamma's bound.
 
     Returns:
         Targets (B,), with gradients stopped.
@@ -353,21 +352,6 @@ def make_ddpg(
         )
         return state, {"critic_loss": c_loss, "actor_loss": a_loss, "q_mean": q_mean}
 
-    def update_many(
-        state: DDPGState, batches: Batch, hparams: HParams
-    ) -> tuple[DDPGState, dict[str, jax.Array]]:
-        """Runs `update` over the leading axis of `batches`.
-
-        Args:
-            state: learner state.
-            batches: transitions with (n, B, ...) fields.
-            hparams: as for `update`.
-
-        Returns:
-            (final state, metrics with a leading (n,) axis).
-        """
-        return jax.lax.scan(lambda s, b: update(s, b, hparams), state, batches)
-
     def target_update(
         state: DDPGState, hparams: HParams, do: jax.Array | bool = True
     ) -> DDPGState:
@@ -397,6 +381,5 @@ def make_ddpg(
         critic_loss=critic_loss,
         actor_loss=actor_loss,
         update=update,
-        update_many=update_many,
         target_update=target_update,
     )

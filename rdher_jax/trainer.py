@@ -1,8 +1,9 @@
 """The training program: ``make_trainer(cfg, env)`` fixes shapes and returns pure functions.
 
 - ``init(key, hparams) -> TrainState``
-- ``cycle(ts, hparams) -> (ts, CycleMetrics)``: rollout of ``num_envs`` episodes, store, normaliser
-  update, ``n_batches`` relabelled gradient steps, one target update. One compiled function.
+- ``cycle(ts, hparams) -> (ts, metrics)``: rollout of ``num_envs`` episodes, store, normaliser
+  update, ``n_batches`` relabelled gradient steps, one target update. One compiled function;
+  ``metrics`` is a dict of the cycle's means and the bias diagnostic's per-source sums.
 - ``epoch(ts, hparams) -> (ts, EpochMetrics)``: ``lax.scan`` over ``n_cycles`` cycles, then
   ``n_test_rollouts`` deterministic test episodes. This is what the CLI jits once and calls per
   epoch; a sweep vmaps it over seeds and hyperparameters.
@@ -111,8 +112,10 @@ def make_trainer(cfg, env) -> Trainer:
     relabeller = relabel.make_relabeller(cfg, env.compute_reward, capacity_episodes, T, goal_dim)
     updates_per_epoch = cfg.n_cycles * cfg.n_batches
 
-    def rollout(key, ds: DDPGState, hp: HParams, n: int, explore: bool) -> rb.Episode:
-        """``n`` episodes of T steps from fresh resets; returns them episode-major."""
+    def rollout(key, ds: DDPGState, hp: HParams, n: int,
+                explore: bool) -> tuple[rb.Episode, jax.Array]:
+        """``n`` episodes of T steps from fresh resets: the episodes, episode-major, and each
+        one's final-step success, ``(n,)``."""
         k_reset, k_act = jax.random.split(key)
         state = v_reset(jax.random.split(k_reset, n))
 
@@ -148,7 +151,7 @@ def make_trainer(cfg, env) -> Trainer:
 
     def bias(key, ts: TrainState, ds: DDPGState, hp: Hyper):
         """Per-source sums and counts of Q minus the observed return, on one fresh batch."""
-        _, b = relabeller.sample(key, ts.relabel, ts.buffer, hp.relabel, jnp.int32(0))
+        b = relabeller.sample(key, ts.relabel, ts.buffer, hp.relabel, jnp.int32(0))
         obs, goal = agent.normalise(ds, b.obs, b.goal)
         q = agent.critic.apply(ds.critic_params, obs, goal, b.action)
         ret = relabel.observed_return(ts.buffer, b, env.compute_reward, hp.ddpg.gamma)
@@ -168,25 +171,27 @@ def make_trainer(cfg, env) -> Trainer:
         ds = agent.update_normaliser(ts.ddpg, norm.obs, norm.goal)
         step0 = ts.updates % updates_per_epoch
 
-        def update(carry, x):
-            ds, rs = carry
+        # Only the learner is carried: sampling reads the relabelling state and never changes
+        # it, so DHER's whole-buffer index need not travel through every step.
+        def update(ds, x):
             k, i = x
             k_sample, k_update = jax.random.split(k)
-            rs, batch = relabeller.sample(k_sample, rs, buf, hp.relabel, step0 + i)
+            batch = relabeller.sample(k_sample, rs, buf, hp.relabel, step0 + i)
             if cfg.n_step > 1:
-                batch = relabel.n_step(buf, batch, cfg.n_step, hp.ddpg.gamma, env.compute_reward,
-                                       stop_at_success=cfg.terminal == "success")
+                batch = relabel.n_step_returns(buf, batch, cfg.n_step, hp.ddpg.gamma,
+                                               env.compute_reward,
+                                               stop_at_success=cfg.terminal == "success")
             else:
-                batch = relabel.with_terminal(buf, batch, cfg.terminal, hp.ddpg.gamma)
+                batch = relabel.mark_terminal(buf, batch, cfg.terminal, hp.ddpg.gamma)
             ds, m = agent.update(ds, batch, hp.ddpg, k_update, ts.updates + i)
             if cfg.target_every:
                 ds = agent.target_update(ds, hp.ddpg, (ts.updates + i + 1) % cfg.target_every == 0)
             m["frac_her"] = jnp.mean(batch.source == relabel.HER)
             m["frac_dher"] = jnp.mean(batch.source == relabel.DHER)
-            return (ds, rs), m
+            return ds, m
 
         xs = (jax.random.split(k_upd, cfg.n_batches), jnp.arange(cfg.n_batches, dtype=jnp.int32))
-        (ds, rs), m = jax.lax.scan(update, (ds, rs), xs)
+        ds, m = jax.lax.scan(update, ds, xs)
         if not cfg.target_every:
             ds = agent.target_update(ds, hp.ddpg)
         ts = ts.replace(

@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import sample_indices
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -34,7 +35,7 @@ def make_episodes(ids, T: int, obs_dim: int = 2, goal_dim: int = 3, act_dim: int
 # as one program rather than one eager op per array).
 new_buffer = jax.jit(rb.init, static_argnums=(0, 1, 2, 3, 4), static_argnames="dtype")
 add_jit = jax.jit(rb.add)
-sample_jit = jax.jit(rb.sample_indices, static_argnums=2)
+sample_jit = jax.jit(sample_indices, static_argnums=2)
 # Shapes shared by the sampling tests: 7 episode slots of T = 5 steps, 1024 samples per draw.
 CAP, HORIZON, BATCH = 7, 5, 1024
 
@@ -219,7 +220,7 @@ def test_jit_vmap_over_seed_axis_matches_per_seed_loop():
             return rb.add(state, ep), None
 
         state, _ = jax.lax.scan(body, base, ep_seq)
-        return state, rb.sample_indices(key, state, BATCH)
+        return state, sample_indices(key, state, BATCH)
 
     states, (e_b, t_b) = jax.jit(jax.vmap(run))(keys, stacked)
     assert states.obs.shape == (n_seeds, cap, T + 1, 2)

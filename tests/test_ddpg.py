@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
+from helpers import update_many
 
 from rdher_jax.ddpg import DDPGState, HParams, critic_target, make_ddpg
 from rdher_jax.relabel import Transition
@@ -336,7 +337,7 @@ def test_updates_reduce_critic_loss_on_toy_problem():
 def _run(h: HParams, batches: Transition) -> tuple[DDPGState, dict[str, jax.Array]]:
     state = D.init(jax.random.key(0), h)
     state = D.update_normaliser(state, batches.obs[0], batches.goal[0])
-    state, metrics = D.update_many(state, batches, h)
+    state, metrics = update_many(D, state, batches, h)
     return D.target_update(state, h), metrics
 
 

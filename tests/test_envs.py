@@ -6,8 +6,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import scripted_action
 from rdher_jax.envs import GYMNASIUM_TASK_NAMES
-from rdher_jax.envs.scripted import scripted_action
 
 from rdher_jax import make_env
 

@@ -10,7 +10,7 @@ from hypothesis import Phase, given, settings
 from hypothesis import strategies as st
 
 from rdher_jax import buffer as rb
-from rdher_jax.relabel import her
+from rdher_jax.relabel import her, relabel_prob_from_k
 
 
 def fetch_reward(achieved, desired):
@@ -154,9 +154,9 @@ def test_future_step_edges():
 
 
 def test_relabel_prob_from_k():
-    assert her.relabel_prob_from_k(4) == pytest.approx(0.8)
-    assert her.relabel_prob_from_k(0) == 0.0
-    assert her.relabel_prob_from_k(1) == pytest.approx(0.5)
+    assert relabel_prob_from_k(4) == pytest.approx(0.8)
+    assert relabel_prob_from_k(0) == 0.0
+    assert relabel_prob_from_k(1) == pytest.approx(0.5)
 
 
 def test_relabel_fraction_rewards_and_goals():

@@ -14,9 +14,10 @@ from hypothesis import strategies as st
 
 from rdher_jax import buffer as rb
 from rdher_jax import relabel
+from rdher_jax.config import Config, resolve
 from rdher_jax.ddpg import HParams, critic_target
 from rdher_jax.relabel import cher, dher
-from rdher_jax.relabel.her import DHER, HER, REAL
+from rdher_jax.relabel.base import DHER, HER, REAL
 
 OBS, ACT, D = 2, 2, 3
 TOL = 1.0  # goals live on an integer grid: a cell is a point
@@ -226,7 +227,7 @@ def test_dher_sample_mixes_by_recent_success():
     state = f.update(f.init(), buf, PARAMS)
     for frac in (0.0, 0.5, 0.8):
         params = PARAMS.replace(dher_fraction=jnp.float32(frac), relabel_prob=jnp.float32(0.8))
-        _, tr = jax.jit(f.sample)(jax.random.PRNGKey(1), state, buf, params, jnp.int32(0))
+        tr = jax.jit(f.sample)(jax.random.PRNGKey(1), state, buf, params, jnp.int32(0))
         src = np.asarray(tr.source)
         want = frac * (1 - 1 / 3)
         assert abs((src == DHER).mean() - want) < 5 * np.sqrt(want * (1 - want) / n) + 1e-9
@@ -294,7 +295,7 @@ def test_cher_sample_fields_come_from_candidates():
                  random_episodes(rng, cap, T, 3))
     f = cher.build_cher(reward_fn, 16, 32, 3)
     params = PARAMS.replace(relabel_prob=jnp.float32(0.8))
-    _, tr = jax.jit(f.sample)(jax.random.PRNGKey(4), (), buf, params, jnp.int32(7))
+    tr = jax.jit(f.sample)(jax.random.PRNGKey(4), (), buf, params, jnp.int32(7))
     draws, noise = f.draw(jax.random.PRNGKey(4), buf, params.relabel_prob)
     cand = relabel.her.gather_her(buf, *draws, reward_fn)
     prox = np.linalg.norm(np.asarray(cand.goal) - np.asarray(buf.ag)[cand.ep, cand.t], axis=-1)
@@ -374,8 +375,8 @@ def test_n_step_matches_loop(n, stop):
         t=jnp.asarray(t, jnp.int32), goal_ep=jnp.asarray(goal_ep, jnp.int32),
         goal_shift=jnp.asarray(shift, jnp.int32),
     )
-    got = jax.jit(relabel.n_step, static_argnums=(2, 4, 5))(buf, tr, n, jnp.float32(gamma),
-                                                              reward_fn, stop)
+    got = jax.jit(relabel.n_step_returns, static_argnums=(2, 4, 5))(
+        buf, tr, n, jnp.float32(gamma), reward_fn, stop)
     ended = 0
     for r in range(B):
         e, t0, s = int(ep_idx[r]), int(t[r]), int(src[r])
@@ -413,9 +414,9 @@ def test_n_step_one_equals_sampled_rows():
         buf = add(buf, random_episodes(rng, 4, T, 2))
         state = update(state, buf, PARAMS)
     params = relabel.RelabelParams.default(relabel_prob=0.5, dher_fraction=0.5, dher_tol=TOL)
-    _, tr = jax.jit(f.sample)(jax.random.key(0), state, buf, params, jnp.int32(0))
+    tr = jax.jit(f.sample)(jax.random.key(0), state, buf, params, jnp.int32(0))
     assert {0, 1, 2} <= set(np.asarray(tr.source).tolist())
-    got = relabel.n_step(buf, tr, 1, jnp.float32(0.9), reward_fn)
+    got = relabel.n_step_returns(buf, tr, 1, jnp.float32(0.9), reward_fn)
     for name in ("reward", "next_obs", "next_goal"):
         np.testing.assert_array_equal(np.asarray(getattr(got, name)),
                                       np.asarray(getattr(tr, name)), err_msg=name)
@@ -444,17 +445,37 @@ def test_terminal_rules_set_discount_zero_on_exactly_their_rows():
         goal_shift=jnp.zeros(B, jnp.int32),
     )
     g = jnp.float32(0.9)
-    assert relabel.with_terminal(buf, tr, "none", g) is tr
+    assert relabel.mark_terminal(buf, tr, "none", g) is tr
     exact = np.all(goal == ag1, axis=-1)
     success = reward == 0
     assert exact.sum() < success.sum()  # the two rules differ on this batch
     for rule, want in (("exact", exact), ("success", success)):
-        got = np.asarray(relabel.with_terminal(buf, tr, rule, g).discount)
+        got = np.asarray(relabel.mark_terminal(buf, tr, rule, g).discount)
         np.testing.assert_allclose(got, np.where(want, 0.0, 0.9), rtol=1e-6)
     # Terminal rows' targets are their rewards: the critic target honours the discount.
     h = HParams.default(gamma=0.9)
     y = critic_target(tr.reward, jnp.full(B, -3.0), tr.hindsight, h,
-                      relabel.with_terminal(buf, tr, "success", g).discount)
+                      relabel.mark_terminal(buf, tr, "success", g).discount)
     np.testing.assert_allclose(np.asarray(y), np.where(success, 0.0, -1.0 - 2.7), rtol=1e-6)
     with pytest.raises(ValueError, match="unknown terminal rule"):
-        relabel.with_terminal(buf, tr, "sometimes", g)
+        relabel.mark_terminal(buf, tr, "sometimes", g)
+
+
+@pytest.mark.parametrize("algo", ["her", "cher", "dher"])
+def test_every_strategy_samples_a_transition_and_keeps_its_state_shape(algo):
+    """The interface: ``sample`` returns only the batch (it never changes the state), and
+    ``update`` returns a state of the shape ``init`` made, so both fit a ``lax.scan``."""
+    cfg = resolve(Config(env="FetchReach", algo=algo, batch_size=16, num_envs=2))
+    T, cap = 5, 8
+    rl = relabel.make_relabeller(cfg, reward_fn, cap, T, D)
+    ep = random_episodes(np.random.default_rng(0), 2, T, 2)
+    buf = rb.add(rb.init(cap * T, T, OBS, D, ACT), ep)
+    params = relabel.params_from_config(cfg)
+    state = rl.init()
+    new_state = jax.eval_shape(rl.update, state, buf, params)
+    assert jax.tree.structure(new_state) == jax.tree.structure(state)
+    assert all(a.shape == b.shape and a.dtype == b.dtype for a, b in
+               zip(jax.tree.leaves(new_state), jax.tree.leaves(state), strict=True))
+    tr = jax.eval_shape(rl.sample, jax.random.key(0), state, buf, params, jnp.int32(0))
+    assert isinstance(tr, relabel.Transition)
+    assert tr.obs.shape == (16, OBS) and tr.source.shape == (16,)

@@ -30,7 +30,7 @@ import jax.numpy as jnp
 
 from rdher_jax.buffer import BufferState
 from rdher_jax.relabel import her
-from rdher_jax.relabel.her import RewardFn, Transition
+from rdher_jax.relabel.base import Relabeller, RewardFn
 
 
 class CHERFns(NamedTuple):
@@ -105,22 +105,22 @@ def build_cher(compute_reward: RewardFn, batch_size: int, candidates: int,
         return draws, noise
 
     def sample(key, state, buffer: BufferState, params, step):
+        del state
         draws, noise = draw(key, buffer, params.relabel_prob)
         cand = her.gather_her(buffer, *draws, compute_reward)
         prox = jnp.linalg.norm(cand.goal - buffer.ag[cand.ep, cand.t], axis=-1)
         lam = params.cher_growth ** step.astype(jnp.float32)
         idx = select(cand.goal, prox, lam, noise, sample_size)
-        return state, jax.tree.map(lambda x: x[idx], cand)
+        return jax.tree.map(lambda x: x[idx], cand)
 
     return CHERFns(sample=sample, draw=draw, select=select)
 
 
-def make_cher(compute_reward: RewardFn, batch_size: int, candidates: int, sample_size: int = 3):
+def make_cher(compute_reward: RewardFn, batch_size: int, candidates: int,
+              sample_size: int = 3) -> Relabeller:
     """CHER as a ``Relabeller`` (stateless)."""
-    from rdher_jax.relabel import Relabeller
-
     f = build_cher(compute_reward, batch_size, candidates, sample_size)
     return Relabeller("cher", init=lambda: (), update=lambda s, b, p: s, sample=f.sample)
 
 
-__all__ = ["Transition", "build_cher", "make_cher", "select", "similarity"]
+__all__ = ["build_cher", "make_cher", "select", "similarity"]

@@ -46,7 +46,7 @@ from flax import struct
 
 from rdher_jax.buffer import BufferState
 from rdher_jax.relabel import her
-from rdher_jax.relabel.her import DHER, RewardFn, Transition
+from rdher_jax.relabel.base import DHER, Relabeller, RewardFn, Transition
 
 SENTINEL = jnp.iinfo(jnp.int32).max
 RECENT = 100  # episodes behind the success rate that sets the combined fraction
@@ -141,10 +141,8 @@ class DHERFns(NamedTuple):
     gather_combined: Callable
 
 
-def make_dher(*args, **kwargs):
+def make_dher(*args, **kwargs) -> Relabeller:
     """DHER as a ``Relabeller`` (arguments as :func:`build_dher`)."""
-    from rdher_jax.relabel import Relabeller
-
     f = build_dher(*args, **kwargs)
     return Relabeller("dher", init=f.init, update=f.update, sample=f.sample)
 
@@ -296,7 +294,7 @@ def build_dher(compute_reward: RewardFn, batch_size: int, capacity_episodes: int
         )
         return tr, ok
 
-    def sample(key, state: DHERState, buffer: BufferState, params, step):
+    def sample(key, state: DHERState, buffer: BufferState, params, step) -> Transition:
         del step
         k_plain, k_comb, k_mix = jax.random.split(key, 3)
         plain = her.sample_her(k_plain, buffer, batch_size, params.relabel_prob, compute_reward)
@@ -307,6 +305,6 @@ def build_dher(compute_reward: RewardFn, batch_size: int, capacity_episodes: int
         def mix(a, b):
             return jnp.where(use.reshape(use.shape + (1,) * (a.ndim - 1)), a, b)
 
-        return state, jax.tree.map(mix, comb, plain)
+        return jax.tree.map(mix, comb, plain)
 
     return DHERFns(init, update, sample, draw_combined, gather_combined)

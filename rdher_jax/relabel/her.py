@@ -11,77 +11,11 @@ gather), so a reference implementation can be fed the same draws.
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import jax
 import jax.numpy as jnp
-from flax import struct
 
 from rdher_jax.buffer import BufferState, Episode, indices_from_bits
-
-RewardFn = Callable[[jax.Array, jax.Array], jax.Array]
-
-# Where a sampled row's goal came from (``Transition.source``).
-REAL, HER, DHER = 0, 1, 2
-SOURCE_NAMES = ("real", "her", "dher")
-
-
-@struct.dataclass
-class Transition:
-    """A training batch; every field has leading dimension ``batch_size``.
-
-    Attributes:
-        obs: ``o_t``.
-        goal: goal the actor and critic are conditioned on at ``t``.
-        action: ``a_t``.
-        reward: ``(batch,)`` float32, recomputed with ``compute_reward``.
-        next_obs: ``o_{t+1}``.
-        next_goal: goal at ``t+1`` (equal to ``goal`` for HER-relabelled samples).
-        source: ``(batch,)`` int32, where the row came from: ``REAL`` (the stored goal),
-            ``HER`` ('future' relabelled) or ``DHER`` (combined with another episode's goals).
-        ep: ``(batch,)`` int32 episode slot of ``(o_t, a_t, o_{t+1})``.
-        t: ``(batch,)`` int32 step of that transition in its episode.
-        goal_ep: ``(batch,)`` int32 slot whose desired-goal trajectory the row follows (``ep``
-            for real rows, the goal-providing episode for DHER rows; unused for HER rows).
-        goal_shift: ``(batch,)`` int32: at step ``k`` of episode ``ep`` the row's goal is
-            ``g[goal_ep, k + goal_shift]`` (0 for real rows; unused for HER rows).
-
-        discount: ``(batch,)`` float32 factor on the bootstrapped value, or ``None`` for
-            ``gamma`` (one-step rows); set by ``rdher_jax.relabel.n_step``.
-
-    The four index fields let diagnostics follow a row's goal through its stored episode
-    (``rdher_jax.relabel.observed_return``); the learner reads the first seven and discount.
-    """
-
-    obs: jax.Array
-    goal: jax.Array
-    action: jax.Array
-    reward: jax.Array
-    next_obs: jax.Array
-    next_goal: jax.Array
-    source: jax.Array
-    ep: jax.Array
-    t: jax.Array
-    goal_ep: jax.Array
-    goal_shift: jax.Array
-    discount: jax.Array | None = None
-
-    @property
-    def hindsight(self) -> jax.Array:
-        """``(batch,)`` bool: the goal is not the stored one (HER or DHER row)."""
-        return self.source != REAL
-
-
-def relabel_prob_from_k(k: float) -> float:
-    """Relabel probability for ``k`` relabelled goals per real goal (baselines' ``replay_k``).
-
-    Args:
-        k: ratio of relabelled to original goals (4 in baselines).
-
-    Returns:
-        ``1 - 1 / (1 + k)`` (0.8 for ``k = 4``).
-    """
-    return 1.0 - 1.0 / (1.0 + k)
+from rdher_jax.relabel.base import HER, REAL, Relabeller, RewardFn, Transition
 
 
 def future_step(t: jax.Array, u: jax.Array, T: int) -> jax.Array:
@@ -214,3 +148,13 @@ def sample_episodes(
     n = jnp.asarray(episodes.action.shape[0], jnp.int32)
     draws = draw_her(key, n, episodes.action.shape[1], batch_size, relabel_prob)
     return gather_her(episodes, *draws, compute_reward)
+
+
+def make_her(compute_reward: RewardFn, batch_size: int) -> Relabeller:
+    """'future' relabelling (baselines' her_sampler) as a ``Relabeller``; stateless."""
+
+    def sample(key, state, buffer, params, step):
+        del state, step
+        return sample_her(key, buffer, batch_size, params.relabel_prob, compute_reward)
+
+    return Relabeller("her", init=lambda: (), update=lambda s, b, p: s, sample=sample)
