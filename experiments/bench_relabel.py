@@ -278,8 +278,8 @@ def matching_cost(sizes: list[int], repeats: int, min_time: float, args) -> tupl
     import jax.numpy as jnp
 
     from rdher_jax import buffer as rb
+    from rdher_jax.program import hparams_from_config
     from rdher_jax.relabel import DHER, make_relabeller
-    from rdher_jax.trainer import hparams_from_config
 
     bench = Bench(min_time)
     setups, info = {}, {}
@@ -361,11 +361,11 @@ def cycle_cost(size: int, repeats: int, min_time: float, args, setups: dict) -> 
 
     from rdher_jax import buffer as rb
     from rdher_jax.ddpg import make_ddpg
+    from rdher_jax.program import hparams_from_config
     from rdher_jax.relabel import cher as cher_mod
     from rdher_jax.relabel import dher as dher_mod
     from rdher_jax.relabel import her as her_mod
     from rdher_jax.relabel import make_relabeller
-    from rdher_jax.trainer import hparams_from_config
 
     if size in setups:
         _, _, dstate, buf = setups[size]
@@ -905,10 +905,9 @@ def main() -> None:
 
     import jax
 
+    import rdher_jax.program  # noqa: F401
+
     # Import everything measured now, and record what was imported before measuring it.
-    import rdher_jax.relabel.cher
-    import rdher_jax.relabel.dher
-    import rdher_jax.trainer  # noqa: F401
 
     library = library_version()
     load0 = os.getloadavg()

@@ -70,12 +70,12 @@ def learner_speed(batch: int, n: int, repeats: int) -> dict:
     import jax.numpy as jnp
 
     from rdher_jax import buffer as rb
-    from rdher_jax.ddpg import HParams, make_ddpg
+    from rdher_jax.ddpg import DDPGParams, make_ddpg
     from rdher_jax.relabel import sample_her
 
     obs_dim, goal_dim, act_dim, T = 25, 3, 4, 50  # FetchPush sizes
     agent = make_ddpg(obs_dim, goal_dim, act_dim)
-    hp = HParams.default()
+    hp = DDPGParams.default()
     relabel_prob = 0.8  # baselines' k = 4
     ds = agent.init(jax.random.PRNGKey(0), hp)
     buf = rb.init(100_000, T, obs_dim, goal_dim, act_dim)

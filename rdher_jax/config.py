@@ -52,7 +52,7 @@ RESUMABLE_KEYS: frozenset[str] = frozenset(
         "progress",
     }
 )
-# The fields that reach the compiled program only as traced values (``trainer.Hyper``), so runs
+# The fields that reach the compiled program only as traced values (``program.Hyper``), so runs
 # that differ in them (and in the seed) are one program: what a sweep may vary.
 TRACED_KEYS: tuple[str, ...] = (
     "actor_lr", "critic_lr", "polyak", "action_l2", "noise_eps", "random_eps", "lambda_r",

@@ -1,6 +1,6 @@
 """Goal-conditioned DDPG as pure functions (OpenAI baselines HER's DDPG, with RDHER reward weights).
 
-Every hyperparameter that a sweep may vary lives in `HParams` as a float32 scalar array, so the
+Every hyperparameter that a sweep may vary lives in `DDPGParams` as a float32 scalar array, so the
 whole training function can be `jax.vmap`-ed over a stack of them. Architecture and
 preprocessing constants are static and fixed by `make_ddpg`.
 """
@@ -35,7 +35,7 @@ class Batch(Protocol):
 
 
 @struct.dataclass
-class HParams:
+class DDPGParams:
     """Sweepable learner hyperparameters; every field is a float32 scalar array.
 
     Relabelling has its own (``rdher_jax.relabel.RelabelParams``).
@@ -52,7 +52,7 @@ class HParams:
     gamma: jax.Array
 
     @classmethod
-    def default(cls, T: int = 50, **overrides: float) -> HParams:
+    def default(cls, T: int = 50, **overrides: float) -> DDPGParams:
         """Baselines HER defaults.
 
         Args:
@@ -60,7 +60,7 @@ class HParams:
             **overrides: field values replacing the defaults.
 
         Returns:
-            HParams with float32 scalar fields.
+            DDPGParams with float32 scalar fields.
         """
         values: dict[str, float] = dict(
             actor_lr=1e-3,
@@ -75,7 +75,7 @@ class HParams:
         )
         unknown = set(overrides) - set(values)
         if unknown:
-            raise TypeError(f"unknown HParams fields: {sorted(unknown)}")
+            raise TypeError(f"unknown DDPGParams fields: {sorted(unknown)}")
         values.update(overrides)
         return cls(**{k: jnp.asarray(v, jnp.float32) for k, v in values.items()})
 
@@ -99,14 +99,14 @@ class DDPG(NamedTuple):
 
     actor: Actor
     critic: Critic
-    init: Callable[[jax.Array, HParams], DDPGState]
+    init: Callable[[jax.Array, DDPGParams], DDPGState]
     normalise: Callable[[DDPGState, jax.Array, jax.Array], tuple[jax.Array, jax.Array]]
     update_normaliser: Callable[[DDPGState, jax.Array, jax.Array], DDPGState]
     act: Callable[[DDPGState, jax.Array, jax.Array], jax.Array]
-    explore: Callable[[jax.Array, DDPGState, jax.Array, jax.Array, HParams], jax.Array]
-    critic_target: Callable[[jax.Array, jax.Array, jax.Array, HParams], jax.Array]
+    explore: Callable[[jax.Array, DDPGState, jax.Array, jax.Array, DDPGParams], jax.Array]
+    critic_target: Callable[[jax.Array, jax.Array, jax.Array, DDPGParams], jax.Array]
     critic_loss: Callable[..., tuple[jax.Array, jax.Array]]
-    actor_loss: Callable[[Params, DDPGState, Batch, HParams], jax.Array]
+    actor_loss: Callable[[Params, DDPGState, Batch, DDPGParams], jax.Array]
     update: Callable[..., tuple[DDPGState, dict[str, jax.Array]]]
     target_update: Callable[..., DDPGState]
 
@@ -115,7 +115,7 @@ def critic_target(
     reward: jax.Array,
     q_next: jax.Array,
     hindsight: jax.Array,
-    hparams: HParams,
+    hparams: DDPGParams,
     discount: jax.Array | None = None,
 ) -> jax.Array:
     """Clipped, reward-weighted TD target y = clip(lam * r + gamma * q_next, -lam / (1 - gamma), 0).
@@ -151,7 +151,7 @@ def _adam(learning_rate: jax.Array) -> optax.GradientTransformation:
 def _adam_step(
     params: Params, grads: Params, opt_state: optax.OptState, learning_rate: jax.Array
 ) -> tuple[Params, optax.OptState]:
-    # inject_hyperparams reads the rate from its state; overwrite it so the HParams passed to
+    # inject_hyperparams reads the rate from its state; overwrite it so the DDPGParams passed to
     # update are authoritative rather than the ones seen at init.
     opt_state = opt_state._replace(
         hyperparams={**opt_state.hyperparams, "learning_rate": learning_rate}
@@ -199,7 +199,7 @@ def make_ddpg(
     if policy_delay < 1:
         raise ValueError(f"policy_delay must be >= 1, got {policy_delay}")
 
-    def init(key: jax.Array, hparams: HParams) -> DDPGState:
+    def init(key: jax.Array, hparams: DDPGParams) -> DDPGState:
         """Fresh networks (targets equal to online), Adam states and empty normalisers."""
         k_actor, k_critic = jax.random.split(key)
         obs = jnp.zeros((1, obs_dim), jnp.float32)
@@ -250,7 +250,7 @@ def make_ddpg(
         return actor.apply(state.actor_params, *normalise(state, obs, goal))
 
     def explore(
-        key: jax.Array, state: DDPGState, obs: jax.Array, goal: jax.Array, hparams: HParams
+        key: jax.Array, state: DDPGState, obs: jax.Array, goal: jax.Array, hparams: DDPGParams
     ) -> jax.Array:
         """Baselines exploration: Gaussian noise, clip, then uniform random rows w.p. random_eps."""
         k_noise, k_coin, k_uniform = jax.random.split(key, 3)
@@ -266,7 +266,7 @@ def make_ddpg(
         critic_params: Params,
         state: DDPGState,
         batch: Batch,
-        hparams: HParams,
+        hparams: DDPGParams,
         key: jax.Array | None = None,
     ) -> tuple[jax.Array, jax.Array]:
         """Returns (mean squared TD error, mean Q(o, g, a)) for the given critic parameters.
@@ -288,7 +288,7 @@ def make_ddpg(
         return jnp.mean(jnp.square(q - y)), jnp.mean(q)
 
     def actor_loss(
-        actor_params: Params, state: DDPGState, batch: Batch, hparams: HParams
+        actor_params: Params, state: DDPGState, batch: Batch, hparams: DDPGParams
     ) -> jax.Array:
         """Returns -mean Q(o, g, pi(o, g)) + action_l2 * mean((pi / max_u)^2)."""
         obs, goal = normalise(state, batch.obs, batch.goal)
@@ -299,7 +299,7 @@ def make_ddpg(
     def update(
         state: DDPGState,
         batch: Batch,
-        hparams: HParams,
+        hparams: DDPGParams,
         key: jax.Array | None = None,
         step: jax.Array | int = 0,
     ) -> tuple[DDPGState, dict[str, jax.Array]]:
@@ -353,7 +353,7 @@ def make_ddpg(
         return state, {"critic_loss": c_loss, "actor_loss": a_loss, "q_mean": q_mean}
 
     def target_update(
-        state: DDPGState, hparams: HParams, do: jax.Array | bool = True
+        state: DDPGState, hparams: DDPGParams, do: jax.Array | bool = True
     ) -> DDPGState:
         """Polyak averaging: target <- polyak * target + (1 - polyak) * online.
 

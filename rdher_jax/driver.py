@@ -6,9 +6,10 @@ where they write) and does the rest: build the program, init or resume, the epoc
 metrics rows, plots, best-policy and latest checkpoints, NaN handling and, for a sweep, the
 summary.
 
-The program is ``trainer.epoch`` over a leading run axis: ``jax.jit(jax.vmap(epoch))`` for a
-sweep, and for a single run the unvmapped epoch with the run axis added and dropped around it
-(so a run gives exactly the numbers it gave before sweeps existed). With several JAX devices a
+The program is ``program.epoch`` (``rdher_jax.program``) over a leading run axis:
+``jax.jit(jax.vmap(epoch))`` for a sweep, and for a single run the unvmapped epoch with the run
+axis added and dropped around it (so a run gives exactly the numbers it gave before sweeps
+existed). With several JAX devices a
 sweep's run axis is split over a 1-D mesh ``"runs"`` (``NamedSharding(mesh, P("runs"))``) and
 the vmapped epoch runs under ``shard_map``, so each device steps only its own runs: no
 collective is needed, and the native backend's ``pure_callback`` is made once per device per
@@ -84,13 +85,13 @@ def resolve_backend(cfg: Config) -> tuple[str, str]:
 
 
 def build(cfg: Config):
-    """Env and trainer (``trainer.make_trainer``) of a resolved config."""
+    """Env and training program (``program.make_program``) of a resolved config."""
     from .envs import make_env
-    from .trainer import make_trainer
+    from .program import make_program
 
     backend, scene = resolve_backend(cfg)
     env = make_env(cfg.env, backend=backend, scene=scene, auto_reset=False)
-    return env, make_trainer(cfg, env)
+    return env, make_program(cfg, env)
 
 
 def _cpu_model() -> str:
@@ -142,8 +143,8 @@ def tree_bytes(tree: Any) -> int:
                    for x in jax.tree.leaves(tree)))
 
 
-class Program:
-    """A trainer's ``init`` and ``epoch`` over a leading run axis, each one compiled program.
+class RunBatch:
+    """A program's ``init`` and ``epoch`` over a leading run axis, each one compiled program.
 
     ``vmapped=False`` (one run only): the plain functions, the run axis taken off and put back
     inside the jitted program. One device: ``jax.jit(jax.vmap(f))``. Several: the vmapped
@@ -151,7 +152,7 @@ class Program:
     rounded up to a multiple of the device count) is the length of the run axis it sees.
     """
 
-    def __init__(self, trainer: Any, n_runs: int, devices: Sequence[Any] | None = None,
+    def __init__(self, program: Any, n_runs: int, devices: Sequence[Any] | None = None,
                  vmapped: bool = True) -> None:
         self.devices = list(devices or jax.devices())[: n_runs if not vmapped else None]
         if not vmapped and n_runs != 1:
@@ -165,8 +166,8 @@ class Program:
             # from uncommitted inputs, and a resume in the same process should not recompile.
             self.sharding = jax.sharding.SingleDeviceSharding(self.devices[0])
             lift = jax.vmap if vmapped else _one_run
-            self.init = jax.jit(lift(trainer.init))
-            self.epoch = jax.jit(lift(trainer.epoch), donate_argnums=0)
+            self.init = jax.jit(lift(program.init))
+            self.epoch = jax.jit(lift(program.epoch), donate_argnums=0)
             return
         from jax.sharding import Mesh, NamedSharding
         from jax.sharding import PartitionSpec as P
@@ -182,8 +183,8 @@ class Program:
             return jax.shard_map(jax.vmap(f), mesh=self.mesh, in_specs=P("runs"),
                                  out_specs=P("runs"), check_vma=False)
 
-        self.init = jax.jit(split(trainer.init))
-        self.epoch = jax.jit(split(trainer.epoch), donate_argnums=0)
+        self.init = jax.jit(split(program.init))
+        self.epoch = jax.jit(split(program.epoch), donate_argnums=0)
 
     def pad(self, tree: Any) -> Any:
         """Extend the run axis to ``n_padded`` with copies of the first run."""
@@ -232,9 +233,9 @@ _LOOP_ONLY = tuple(k for k in RESUMABLE_KEYS if k != "backend" and k != "n_test_
 _LAST_PROGRAM: dict[str, Any] = {}
 
 
-def program_for(runs: Sequence[Config], devices: Sequence[Any] | None = None,
+def batch_for(runs: Sequence[Config], devices: Sequence[Any] | None = None,
                 vmapped: bool = True):
-    """Env, trainer and :class:`Program` of runs that differ only in traced keys and seeds.
+    """Env, program and :class:`RunBatch` of runs that differ only in traced keys and seeds.
 
     Shapes and the algorithm come from the first run's config; everything that differs between
     runs is in each run's hyperparameters and key. The last program is kept for the life of the
@@ -255,17 +256,17 @@ def program_for(runs: Sequence[Config], devices: Sequence[Any] | None = None,
     key = (to_yaml(shared), len(runs), tuple(str(d) for d in devices), vmapped)
     if _LAST_PROGRAM.get("key") != key:
         _LAST_PROGRAM.clear()  # one at a time: a program holds its env and compiled code
-        env, trainer = build(runs[0])
-        _LAST_PROGRAM.update(key=key, value=(env, trainer,
-                                             Program(trainer, len(runs), devices, vmapped)))
+        env, program = build(runs[0])
+        _LAST_PROGRAM.update(key=key, value=(env, program,
+                                             RunBatch(program, len(runs), devices, vmapped)))
     return _LAST_PROGRAM["value"]
 
 
 # ------------------------------------------------------------------ metrics rows
 
 def epoch_metric_names() -> tuple[str, ...]:
-    """The fields of the trainer's ``EpochMetrics``, in declaration order."""
-    from .trainer import EpochMetrics
+    """The fields of the program's ``EpochMetrics``, in declaration order."""
+    from .program import EpochMetrics
 
     return tuple(f.name for f in dataclasses.fields(EpochMetrics))
 
@@ -441,16 +442,16 @@ def drive(plan: Plan, argv: Sequence[str] = (), prog: str = "", log=print,
     run's best test success), "diverged" ({name: epoch}), "program", "summary" (sweep: the
     summary's runs and settings)}``.
     """
-    from .trainer import hparams_from_config
+    from .program import hparams_from_config
 
     argv = list(argv)
     runs, cfg, n = plan.runs, plan.runs[0], len(plan.runs)
     names = list(plan.names)
     check_out_dir(plan)
-    env, trainer, program = program_for(runs, devices, vmapped=plan.sweep)
-    hps = program.put(stack([hparams_from_config(c) for c in runs]))
-    keys = program.put(stack([jax.random.PRNGKey(c.seed) for c in runs]))
-    ts = program.init(keys, hps)
+    env, _, batch = batch_for(runs, devices, vmapped=plan.sweep)
+    hps = batch.put(stack([hparams_from_config(c) for c in runs]))
+    keys = batch.put(stack([jax.random.PRNGKey(c.seed) for c in runs]))
+    ts = batch.init(keys, hps)
 
     if not plan.resume:
         make_dir(plan.out_dir, "sweep_dir" if plan.sweep else "run_dir")
@@ -458,13 +459,13 @@ def drive(plan: Plan, argv: Sequence[str] = (), prog: str = "", log=print,
     ckpt = Checkpointer(plan.out_dir, best=False) if plan.sweep else outs[0].ckpt
     info = run_info(cfg, argv, prog)
     if plan.sweep:
-        per_run = tree_bytes(ts) // program.n_padded
-        info.update(runs=names, n_runs=n, n_padded=program.n_padded,
-                    program=program.describe(), state_bytes_per_run=per_run,
-                    state_bytes=per_run * program.n_padded)
+        per_run = tree_bytes(ts) // batch.n_padded
+        info.update(runs=names, n_runs=n, n_padded=batch.n_padded,
+                    program=batch.describe(), state_bytes_per_run=per_run,
+                    state_bytes=per_run * batch.n_padded)
 
     def saved(ts):  # the latest checkpoint: a sweep's stacked state, a run's own
-        host = program.unpad(ts)
+        host = batch.unpad(ts)
         return host if plan.sweep else jax.tree.map(lambda x: x[0], host)
 
     start, wall0, diverged = 0, 0.0, {}
@@ -473,7 +474,7 @@ def drive(plan: Plan, argv: Sequence[str] = (), prog: str = "", log=print,
         if plan.sweep and meta.get("runs") != names:
             raise ConfigError(f"cannot resume {plan.out_dir}: its checkpoint holds runs "
                               f"{meta.get('runs')}, not {names}")
-        ts = program.put(state if plan.sweep else stack([state]))
+        ts = batch.put(state if plan.sweep else stack([state]))
         del state
         try:
             wall0 = float(meta["wall_time"])
@@ -514,14 +515,14 @@ def drive(plan: Plan, argv: Sequence[str] = (), prog: str = "", log=print,
     last_rows: list[dict] = [{} for _ in runs]
     for epoch in range(start, cfg.epochs):
         t0 = time.perf_counter()
-        ts, m = program.epoch(ts, hps)
+        ts, m = batch.epoch(ts, hps)
         m = jax.device_get(m)
         dt = time.perf_counter() - t0
         host: dict[str, Any] = {}
 
         def policies(ts=ts, host=host):
             # Every run's learner state, fetched once and only when some run has a new best;
-            # sliced per run on the host (see Program.unpad).
+            # sliced per run on the host (see RunBatch.unpad).
             if "ddpg" not in host:
                 host["ddpg"] = jax.device_get(ts.ddpg)
             return host["ddpg"]
@@ -575,7 +576,7 @@ def drive(plan: Plan, argv: Sequence[str] = (), prog: str = "", log=print,
         ckpt.close()
     result = {"out_dir": str(plan.out_dir), "names": names, "rows": last_rows,
               "best": [o.best for o in outs], "diverged": diverged,
-              "program": program.describe()}
+              "program": batch.describe()}
     if plan.sweep:
         result["summary"] = summary.collect(plan, diverged)
     return result

@@ -17,8 +17,8 @@ import pytest
 from rdher_jax import buffer as rb
 from rdher_jax import make_env, relabel
 from rdher_jax.config import Config, resolve
+from rdher_jax.program import make_program
 from rdher_jax.relabel import cher, her
-from rdher_jax.trainer import make_trainer
 
 GROWTH = 2.0  # lam = 2 ** step: a wrong step index changes the selection
 N_CYCLES, N_BATCHES, EPOCHS = 3, 4, 2
@@ -81,7 +81,7 @@ def calls():
 
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(relabel, "make_relabeller", spy_factory)
-        trainer = make_trainer(cfg, env)
+        trainer = make_program(cfg, env)
     hp = trainer.hparams
     ts = jax.jit(trainer.init)(jax.random.PRNGKey(0), hp)
     epoch = jax.jit(trainer.epoch)

@@ -9,7 +9,7 @@ import optax
 import pytest
 from helpers import update_many
 
-from rdher_jax.ddpg import DDPGState, HParams, critic_target, make_ddpg
+from rdher_jax.ddpg import DDPGParams, DDPGState, critic_target, make_ddpg
 from rdher_jax.relabel import Transition
 
 OBS, GOAL, ACT = 4, 3, 2
@@ -38,7 +38,7 @@ target_update = jax.jit(D.target_update)
 
 
 @jax.jit
-def losses(state: DDPGState, batch: Transition, h: HParams) -> tuple[jax.Array, ...]:
+def losses(state: DDPGState, batch: Transition, h: DDPGParams) -> tuple[jax.Array, ...]:
     """(critic loss, mean Q, actor loss) at the state's online parameters."""
     c_loss, q_mean = D.critic_loss(state.critic_params, state, batch, h)
     return c_loss, q_mean, D.actor_loss(state.actor_params, state, batch, h)
@@ -62,7 +62,7 @@ def _batch(seed: int, n: int = B) -> Transition:
     )
 
 
-def _state(h: HParams, norm_data: Transition) -> DDPGState:
+def _state(h: DDPGParams, norm_data: Transition) -> DDPGState:
     """Initialised state with distinct target networks and a non-trivial normaliser."""
     state = init(jax.random.key(0), h)
     other = init(jax.random.key(1), h)
@@ -105,18 +105,18 @@ def _np_critic(params, o, g, a, max_u):
 
 
 def test_hparams_default_and_overrides():
-    h = HParams.default(T=50, lambda_h=0.5)
+    h = DDPGParams.default(T=50, lambda_h=0.5)
     for leaf in jax.tree.leaves(h):
         assert leaf.shape == () and leaf.dtype == jnp.float32
     assert float(h.gamma) == pytest.approx(0.98)
     assert float(h.lambda_h) == 0.5 and float(h.lambda_r) == 1.0
-    assert float(HParams.default(T=100).gamma) == pytest.approx(0.99)
+    assert float(DDPGParams.default(T=100).gamma) == pytest.approx(0.99)
     with pytest.raises(TypeError):
-        HParams.default(learning_rate=1e-3)
+        DDPGParams.default(learning_rate=1e-3)
 
 
 def test_critic_target_table():
-    h = HParams.default(lambda_r=1.0, lambda_h=0.5, gamma=0.9)  # bounds: real -10, hindsight -5
+    h = DDPGParams.default(lambda_r=1.0, lambda_h=0.5, gamma=0.9)  # bounds: real -10, hindsight -5
     table = np.array(
         # reward, q_next, hindsight, expected y
         [
@@ -140,7 +140,7 @@ def test_critic_target_table():
     assert np.all(np.asarray(grad) == 0.0)  # the target is a constant for the critic
 
     # Equal lambdas reduce to baselines' clip to [-1 / (1 - gamma), 0] = [-50, 0].
-    y, _ = _target_and_grad(reward, q_next - 60.0, hindsight, HParams.default())
+    y, _ = _target_and_grad(reward, q_next - 60.0, hindsight, DDPGParams.default())
     expected = np.clip(table[:, 0] + 0.98 * (table[:, 1] - 60.0), -50.0, 0.0)
     np.testing.assert_allclose(np.asarray(y), expected, rtol=1e-5)
 
@@ -166,7 +166,7 @@ def _target_and_grad(reward, q_next, hindsight, h):
 
 
 def test_losses_match_numpy_forward_pass():
-    h = HParams.default(lambda_r=1.0, lambda_h=0.5, gamma=0.9, action_l2=0.7)
+    h = DDPGParams.default(lambda_r=1.0, lambda_h=0.5, gamma=0.9, action_l2=0.7)
     norm_data = _batch(2)
     state = _state(h, norm_data)
     batch = _batch(3)
@@ -199,7 +199,7 @@ def test_losses_match_numpy_forward_pass():
 
 
 @jax.jit
-def _reference_step(state: DDPGState, adam_states, batch: Transition, h: HParams):
+def _reference_step(state: DDPGState, adam_states, batch: Transition, h: DDPGParams):
     """Both gradients at the same parameters, then plain optax Adam steps."""
     (c_loss, q_mean), c_g = jax.value_and_grad(D.critic_loss, has_aux=True)(
         state.critic_params, state, batch, h
@@ -216,9 +216,9 @@ def _reference_step(state: DDPGState, adam_states, batch: Transition, h: HParams
 
 
 def test_update_applies_both_adam_steps_from_pre_update_params():
-    state0 = _state(HParams.default(), _batch(4))
-    # Rates differ from those seen at init: the HParams passed to update must be the ones used.
-    h = HParams.default(actor_lr=1e-2, critic_lr=3e-3)
+    state0 = _state(DDPGParams.default(), _batch(4))
+    # Rates differ from those seen at init: the DDPGParams passed to update must be the ones used.
+    h = DDPGParams.default(actor_lr=1e-2, critic_lr=3e-3)
     # Two steps: Adam's first step is about lr * sign(grad), the second depends on magnitudes.
     batches = [_batch(5 + i) for i in range(2)]
 
@@ -240,7 +240,7 @@ def test_update_applies_both_adam_steps_from_pre_update_params():
 
 
 def test_init_targets_equal_online_and_polyak_update():
-    h = HParams.default(polyak=0.9)
+    h = DDPGParams.default(polyak=0.9)
     state = init(jax.random.key(0), h)
     _assert_trees_close(state.target_actor_params, state.actor_params, 0, 0)
     _assert_trees_close(state.target_critic_params, state.critic_params, 0, 0)
@@ -260,12 +260,12 @@ def test_init_targets_equal_online_and_polyak_update():
 def test_explore():
     n = 4000
     data = _batch(7, n)
-    state = _state(HParams.default(), _batch(7))
+    state = _state(DDPGParams.default(), _batch(7))
     pi = np.asarray(act(state, data.obs, data.goal))
     key = jax.random.key(8)
 
     def sample(noise_eps: float, random_eps: float) -> np.ndarray:
-        h = HParams.default(noise_eps=noise_eps, random_eps=random_eps)
+        h = DDPGParams.default(noise_eps=noise_eps, random_eps=random_eps)
         return np.asarray(explore(key, state, data.obs, data.goal, h))
 
     np.testing.assert_array_equal(sample(0.0, 0.0), pi)
@@ -288,7 +288,7 @@ def test_explore():
 
 
 def test_normaliser_matches_baselines_formula():
-    state = init(jax.random.key(0), HParams.default())
+    state = init(jax.random.key(0), DDPGParams.default())
     rng = np.random.default_rng(0)
     obs_all, goal_all = [], []
     for i in range(3):
@@ -320,7 +320,7 @@ def test_normaliser_matches_baselines_formula():
 
 
 def test_updates_reduce_critic_loss_on_toy_problem():
-    h = HParams.default(critic_lr=1e-2)
+    h = DDPGParams.default(critic_lr=1e-2)
     batch = _batch(9)
     # Reward depends on the input so the critic has something learnable to fit.
     reward = -(np.asarray(batch.obs)[:, 0] > 1.0).astype(np.float32)
@@ -334,7 +334,7 @@ def test_updates_reduce_critic_loss_on_toy_problem():
     assert np.mean(critic_losses[-10:]) < 0.3 * critic_losses[0]
 
 
-def _run(h: HParams, batches: Transition) -> tuple[DDPGState, dict[str, jax.Array]]:
+def _run(h: DDPGParams, batches: Transition) -> tuple[DDPGState, dict[str, jax.Array]]:
     state = D.init(jax.random.key(0), h)
     state = D.update_normaliser(state, batches.obs[0], batches.goal[0])
     state, metrics = update_many(D, state, batches, h)
@@ -343,8 +343,8 @@ def _run(h: HParams, batches: Transition) -> tuple[DDPGState, dict[str, jax.Arra
 
 def test_vmap_over_hparams_matches_separate_runs():
     hs = [
-        HParams.default(actor_lr=1e-3, critic_lr=1e-3, polyak=0.95),
-        HParams.default(actor_lr=5e-3, critic_lr=2e-3, polyak=0.8, lambda_h=0.5),
+        DDPGParams.default(actor_lr=1e-3, critic_lr=1e-3, polyak=0.95),
+        DDPGParams.default(actor_lr=5e-3, critic_lr=2e-3, polyak=0.8, lambda_h=0.5),
     ]
     batch_list = [_batch(11 + i) for i in range(3)]
     batches = jax.tree.map(lambda *x: jnp.asarray(np.stack(x)), *batch_list)
@@ -377,7 +377,7 @@ D_TD3 = make_ddpg(
 
 
 def test_policy_delay_skips_actor_steps_and_nothing_else():
-    h = HParams.default()
+    h = DDPGParams.default()
     state0 = _state(h, _batch(4))
     batch = _batch(5)
     key = jax.random.key(3)
@@ -393,7 +393,7 @@ def test_policy_delay_skips_actor_steps_and_nothing_else():
 
 
 def test_target_smoothing_noise_is_clipped_and_keyed():
-    h = HParams.default()
+    h = DDPGParams.default()
     state = _state(h, _batch(4))
     batch = _batch(6)
     loss = jax.jit(lambda s, b, k: D_TD3.critic_loss(s.critic_params, s, b, h, k)[0])
@@ -421,7 +421,7 @@ def test_target_smoothing_noise_is_clipped_and_keyed():
 
 
 def test_target_update_can_be_skipped():
-    h = HParams.default(polyak=0.9)
+    h = DDPGParams.default(polyak=0.9)
     state = _state(h, _batch(4))
     kept = target_update(state, h, jnp.asarray(False))
     _assert_trees_close(kept.target_critic_params, state.target_critic_params, 0, 0)
@@ -431,7 +431,7 @@ def test_target_update_can_be_skipped():
 
 def test_layer_norm_critic():
     d = make_ddpg(OBS, GOAL, ACT, hidden=(8, 8), layer_norm=True)
-    s = d.init(jax.random.key(0), HParams.default())
+    s = d.init(jax.random.key(0), DDPGParams.default())
     assert {"norm_0", "norm_1"} <= set(s.critic_params["params"]["mlp"])
     assert not any(k.startswith("norm") for k in s.actor_params["params"]["mlp"])
     # Scaling a hidden layer's weights and bias changes nothing after a LayerNorm.

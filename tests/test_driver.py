@@ -76,7 +76,7 @@ def test_bad_grids_are_one_line_errors(args, fragment, capsys, tmp_path):
 
 
 def test_traced_keys_are_exactly_what_reaches_the_hyperparameters():
-    from rdher_jax.trainer import hparams_from_config
+    from rdher_jax.program import hparams_from_config
 
     base = resolve(parse_args(["algo=rdher", "env=FetchPush"]))
     ref = jax.tree.leaves(hparams_from_config(base))
@@ -87,7 +87,7 @@ def test_traced_keys_are_exactly_what_reaches_the_hyperparameters():
         assert any(float(a) != float(b) for a, b in zip(ref, leaves, strict=True)), key
     # Runs that differ in anything else are not one program.
     with pytest.raises(ConfigError, match="differ only in traced keys and seeds, not in hidden"):
-        driver.program_for([base, dataclasses.replace(base, hidden=64)])
+        driver.batch_for([base, dataclasses.replace(base, hidden=64)])
 
 
 @pytest.mark.parametrize("algo", ["her", "rdher"])  # config checks: test_config.py

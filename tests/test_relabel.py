@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 from rdher_jax import buffer as rb
 from rdher_jax import relabel
 from rdher_jax.config import Config, resolve
-from rdher_jax.ddpg import HParams, critic_target
+from rdher_jax.ddpg import DDPGParams, critic_target
 from rdher_jax.relabel import cher, dher
 from rdher_jax.relabel.base import DHER, HER, REAL
 
@@ -343,7 +343,7 @@ def test_reward_weights_apply_to_exactly_their_rows():
     source = jnp.asarray([REAL, HER, DHER, REAL, DHER, HER], jnp.int32)
     tr = relabel.Transition(*(jnp.zeros(6) for _ in range(6)), source=source,
                             ep=source, t=source, goal_ep=source, goal_shift=source)
-    h = HParams.default(lambda_r=3.0, lambda_h=0.25, gamma=0.5)
+    h = DDPGParams.default(lambda_r=3.0, lambda_h=0.25, gamma=0.5)
     y = np.asarray(critic_target(-jnp.ones(6), -jnp.ones(6), tr.hindsight, h))
     lam = np.where(np.asarray(source) == REAL, 3.0, 0.25)
     np.testing.assert_allclose(y, np.maximum(-lam - 0.5, -lam / 0.5))
@@ -453,7 +453,7 @@ def test_terminal_rules_set_discount_zero_on_exactly_their_rows():
         got = np.asarray(relabel.mark_terminal(buf, tr, rule, g).discount)
         np.testing.assert_allclose(got, np.where(want, 0.0, 0.9), rtol=1e-6)
     # Terminal rows' targets are their rewards: the critic target honours the discount.
-    h = HParams.default(gamma=0.9)
+    h = DDPGParams.default(gamma=0.9)
     y = critic_target(tr.reward, jnp.full(B, -3.0), tr.hindsight, h,
                       relabel.mark_terminal(buf, tr, "success", g).discount)
     np.testing.assert_allclose(np.asarray(y), np.where(success, 0.0, -1.0 - 2.7), rtol=1e-6)

@@ -183,9 +183,9 @@ def _poison(monkeypatch, which):
     new compilation: the ref sweep's program is reused)."""
     import jax.numpy as jnp
 
-    real = driver.program_for
+    real = driver.batch_for
 
-    def program_for(runs, devices=None, vmapped=True):
+    def batch_for(runs, devices=None, vmapped=True):
         env, trainer, prog = real(runs, devices, vmapped)
         poisoned = copy.copy(prog)
 
@@ -197,7 +197,7 @@ def _poison(monkeypatch, which):
         poisoned.epoch = epoch
         return env, trainer, poisoned
 
-    monkeypatch.setattr(driver, "program_for", program_for)
+    monkeypatch.setattr(driver, "batch_for", batch_for)
 
 
 def test_a_diverged_run_stops_alone(ref, tmp_path, monkeypatch):

@@ -156,7 +156,7 @@ def test_vmapped_hparams_equal_separate_runs(tmp_path):
     """The epoch function vmaps over seeds x hyperparameters (the sweep axis) and gives the
     same results as separate runs: what makes one compiled program per sweep possible. Each
     run's hyperparameters come from its own Config; the pytree is never opened by name."""
-    from rdher_jax.trainer import hparams_from_config
+    from rdher_jax.program import hparams_from_config
 
     cfg = tiny_cfg(tmp_path, epochs=1)
     _, trainer = driver.build(cfg)
@@ -185,8 +185,8 @@ def test_vmapped_hparams_equal_separate_runs(tmp_path):
 
 def test_metrics_columns_follow_epoch_metrics(tmp_path):
     """metrics.csv has the historical columns first, then every other EpochMetrics field."""
+    from rdher_jax.program import EpochMetrics
     from rdher_jax.runlog import LEADING_FIELDS
-    from rdher_jax.trainer import EpochMetrics
 
     names = [f.name for f in dataclasses.fields(EpochMetrics)]
     cols = driver.csv_fields()

@@ -13,7 +13,7 @@ Every strategy is three pure functions, in the shape flashbax and Brax use for e
 
 Rows carry where they came from (``Transition.source``: real, HER-relabelled, DHER-combined),
 so reward weights and diagnostics can tell them apart. Hyperparameters of relabelling are a
-pytree of their own (:class:`RelabelParams`), traced like ``ddpg.HParams``.
+pytree of their own (:class:`RelabelParams`), traced like ``ddpg.DDPGParams``.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The training program: ``make_trainer(cfg, env)`` fixes shapes and returns pure functions.
+"""The training program: ``make_program(cfg, env)`` fixes shapes and returns pure functions.
 
 - ``init(key, hparams) -> TrainState``
 - ``cycle(ts, hparams) -> (ts, metrics)``: rollout of ``num_envs`` episodes, store, normaliser
@@ -8,7 +8,7 @@
   ``n_test_rollouts`` deterministic test episodes. This is what the CLI jits once and calls per
   epoch; a sweep vmaps it over seeds and hyperparameters.
 
-Everything a user may sweep is in ``Hyper`` (``ddpg.HParams`` and ``relabel.RelabelParams``,
+Everything a user may sweep is in ``Hyper`` (``ddpg.DDPGParams`` and ``relabel.RelabelParams``,
 arrays, traced); everything that fixes a shape is in the frozen ``config.Config``. How goals are
 relabelled is one ``relabel.Relabeller`` (HER, CHER or DHER) whose state lives in ``TrainState``.
 """
@@ -24,7 +24,7 @@ from flax import struct
 from . import buffer as rb
 from . import relabel
 from .config import ALGO_NAMES
-from .ddpg import DDPGState, HParams, make_ddpg
+from .ddpg import DDPGParams, DDPGState, make_ddpg
 from .relabel import SOURCE_NAMES, RelabelParams
 
 
@@ -32,7 +32,7 @@ from .relabel import SOURCE_NAMES, RelabelParams
 class Hyper:
     """Every traced hyperparameter of a run: the learner's and relabelling's."""
 
-    ddpg: HParams
+    ddpg: DDPGParams
     relabel: RelabelParams
 
 
@@ -72,7 +72,7 @@ class EpochMetrics:
     bias_unw_dher: jax.Array
 
 
-class Trainer(NamedTuple):
+class Program(NamedTuple):
     init: Any
     cycle: Any
     epoch: Any
@@ -85,7 +85,7 @@ class Trainer(NamedTuple):
 def hparams_from_config(cfg) -> Hyper:
     """The traced hyperparameters of a (resolved) config."""
     return Hyper(
-        ddpg=HParams.default(
+        ddpg=DDPGParams.default(
             actor_lr=cfg.actor_lr, critic_lr=cfg.critic_lr, polyak=cfg.polyak,
             action_l2=cfg.action_l2, noise_eps=cfg.noise_eps, random_eps=cfg.random_eps,
             lambda_r=cfg.lambda_r, lambda_h=cfg.lambda_h, gamma=cfg.gamma,
@@ -94,7 +94,7 @@ def hparams_from_config(cfg) -> Hyper:
     )
 
 
-def make_trainer(cfg, env) -> Trainer:
+def make_program(cfg, env) -> Program:
     """Build the pure training functions for a resolved ``Config`` and an env without
     auto-reset (episodes are reset explicitly at the start of each cycle, all in step)."""
     if cfg.algo not in ALGO_NAMES:
@@ -112,7 +112,7 @@ def make_trainer(cfg, env) -> Trainer:
     relabeller = relabel.make_relabeller(cfg, env.compute_reward, capacity_episodes, T, goal_dim)
     updates_per_epoch = cfg.n_cycles * cfg.n_batches
 
-    def rollout(key, ds: DDPGState, hp: HParams, n: int,
+    def rollout(key, ds: DDPGState, hp: DDPGParams, n: int,
                 explore: bool) -> tuple[rb.Episode, jax.Array]:
         """``n`` episodes of T steps from fresh resets: the episodes, episode-major, and each
         one's final-step success, ``(n,)``."""
@@ -234,5 +234,5 @@ def make_trainer(cfg, env) -> Trainer:
             **mean,
         )
 
-    return Trainer(init=init, cycle=cycle, epoch=epoch, evaluate=evaluate,
+    return Program(init=init, cycle=cycle, epoch=epoch, evaluate=evaluate,
                    hparams=hparams_from_config(cfg), ddpg=agent, relabeller=relabeller)
