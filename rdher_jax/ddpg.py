@@ -53,7 +53,7 @@ class DDPGParams:
 
     @classmethod
     def default(cls, T: int = 50, **overrides: float) -> DDPGParams:
-        """Baselines HER defaults.
+        """The defaults of ``config.Config`` (baselines' HER settings), unweighted rewards.
 
         Args:
             T: episode length; sets gamma = 1 - 1/T as in baselines.
@@ -62,17 +62,14 @@ class DDPGParams:
         Returns:
             DDPGParams with float32 scalar fields.
         """
-        values: dict[str, float] = dict(
-            actor_lr=1e-3,
-            critic_lr=1e-3,
-            polyak=0.95,
-            action_l2=1.0,
-            noise_eps=0.2,
-            random_eps=0.3,
-            lambda_r=1.0,
-            lambda_h=1.0,
-            gamma=1.0 - 1.0 / T,
-        )
+        from rdher_jax.config import Config
+
+        cfg = Config()
+        values: dict[str, float] = {
+            k: getattr(cfg, k)
+            for k in ("actor_lr", "critic_lr", "polyak", "action_l2", "noise_eps", "random_eps")
+        }
+        values.update(lambda_r=1.0, lambda_h=1.0, gamma=1.0 - 1.0 / T)
         unknown = set(overrides) - set(values)
         if unknown:
             raise TypeError(f"unknown DDPGParams fields: {sorted(unknown)}")

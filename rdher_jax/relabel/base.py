@@ -101,7 +101,13 @@ class RelabelParams:
 
     @classmethod
     def default(cls, **overrides: float) -> RelabelParams:
-        values = dict(relabel_prob=0.8, dher_fraction=0.8, dher_tol=0.01, cher_growth=1.0001)
+        """The defaults of ``config.Config`` (relabel_prob from its replay_k)."""
+        from rdher_jax.config import Config
+
+        cfg = Config()
+        values = dict(relabel_prob=relabel_prob_from_k(cfg.replay_k),
+                      dher_fraction=cfg.dher_fraction, dher_tol=cfg.dher_tol,
+                      cher_growth=cfg.cher_growth)
         unknown = set(overrides) - set(values)
         if unknown:
             raise TypeError(f"unknown RelabelParams fields: {sorted(unknown)}")
