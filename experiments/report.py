@@ -427,8 +427,8 @@ def summary_markdown(kind: str, profile: str, data: Sequence[SettingData]) -> st
             "Q(s, a, g) minus the discounted return the row's goal received in its stored "
             "episode, per sample source (real, "
             "HER-relabelled, DHER-combined): weighted as the critic was trained (Q − λ·G) and "
-            "unweighted (Q − G); '-' where a source had no rows (README, 'Hindsight-bias "
-            "diagnostic').", ""]
+            "unweighted (Q − G); '-' where a source had no rows (docs/algorithms.md, "
+            "'Hindsight-bias diagnostic').", ""]
     head = ["task", "setting", "λ_r / λ_h", "real", "HER", "DHER", "real, unw.", "HER, unw.",
             "DHER, unw."]
     rows = []

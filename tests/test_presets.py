@@ -6,8 +6,8 @@ import pytest
 
 from rdher_jax.config import Config, parse_args
 
-# What the README's 'preset=fast' section and bench_learning measured; a change to PRESETS that
-# is not a change to these numbers is a bug.
+# What docs/performance.md's 'preset=fast' section and bench_learning measured; a change to
+# PRESETS that is not a change to these numbers is a bug.
 FAST = {
     "num_envs": 1,
     "n_batches": 40,

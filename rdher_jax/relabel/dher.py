@@ -32,7 +32,7 @@ As in the authors' code, ``dher_fraction * (1 - s)`` of a batch are combined tra
 ``s`` the success rate of the last 100 stored episodes. Unlike their code, the rest are sampled
 with 'future' relabelling at ``relabel_prob`` (set ``replay_k=0`` for their plain samples): on
 the static-goal Fetch tasks exact matches are rare, and without 'future' goals DHER would train
-almost only on real rewards there (see the README, "Mixing").
+almost only on real rewards there (see docs/algorithms.md, "Mixing").
 """
 
 from __future__ import annotations
