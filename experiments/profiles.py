@@ -93,8 +93,8 @@ REACH_CPU = Budget(5, {"epochs": 5, "n_cycles": 10, **PAPER_LEARNER},
                    "the paper's learner; 5 epochs (5,000 env steps per run) in place of its 50")
 # FetchPush on a 2-core CPU: preset=fast (see docs/performance.md, 'preset=fast'), 3 seeds, 200
 # epochs of 50 one-episode cycles = 500,000 env steps per run, where preset=fast has reached test
-# success 0.9 (experiments/results/bench_learning/summary.md). Vmapping seeds saves no arithmetic on a
-# CPU: a setting of 3 seeds took 1 h 41 min (HER) and about 2 h 10 min (RDHER, whose matching
+# success 0.9 (experiments/results/bench_learning/summary.md). Vmapping seeds saves no arithmetic
+# on a CPU: a setting of 3 seeds took 1 h 41 min (HER) and about 2 h 10 min (RDHER, whose matching
 # grows with the buffer) of one core, beside another sweep on the other core. The committed
 # reduced set is HER against RDHER at the paper's pair (--algos her rdher); the other three
 # algorithms are about 2 hours each and the ablation's six weighted settings about 10 hours,
