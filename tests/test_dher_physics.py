@@ -28,7 +28,7 @@ import pytest
 from rdher_jax import driver
 from rdher_jax.config import parse_args, resolve
 from rdher_jax.relabel import dher
-from rdher_jax.relabel.her import DHER
+from rdher_jax.relabel.base import DHER
 
 SEED = 0
 NUM_ENVS, CYCLES, SLOTS = 16, 6, 64  # 96 episodes into 64 slots: records of overwritten slots die
