@@ -9,8 +9,14 @@ from __future__ import annotations
 
 import dataclasses
 
-from .fetch import EPISODE_LENGTH, FetchEnv, State
-from .physics import MOVING_TASKS, TASKS, Setup, check_task
+from rdher_jax._quiet import quiet_imports
+
+# Before mjbatch imports mujoco.mjx and the scenes import gymnasium_robotics. Not at the
+# package's import: rendering must choose MUJOCO_GL before mujoco is first imported.
+quiet_imports()
+
+from .fetch import EPISODE_LENGTH, FetchEnv, State  # noqa: E402
+from .physics import MOVING_TASKS, TASKS, Setup, check_task  # noqa: E402
 
 BACKENDS = ("mujoco", "mjx")
 GYMNASIUM_TASK_NAMES = tuple(TASKS)  # as gymnasium-robotics' Fetch*-v4 (conformance-tested)

@@ -1,11 +1,6 @@
 """rdher-jax: fully-jitted DDPG + HER / DHER / RDHER for the gymnasium-robotics Fetch tasks."""
 
-from ._quiet import quiet_imports
-
 __version__ = "0.1.0"
-
-# Before brax, mjbatch or the envs import mujoco.mjx, and before gymnasium_robotics is imported.
-quiet_imports()
 
 
 def make_env(name: str, backend: str | None = None, **kwargs):

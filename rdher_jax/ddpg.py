@@ -13,10 +13,15 @@ from typing import Any, NamedTuple, Protocol
 import jax
 import jax.numpy as jnp
 import optax
-from brax.training.acme import running_statistics
 from flax import struct
 
-from rdher_jax.networks import Actor, Critic
+from rdher_jax._quiet import quiet_imports
+
+quiet_imports()  # brax imports mujoco.mjx
+
+from brax.training.acme import running_statistics  # noqa: E402
+
+from rdher_jax.networks import Actor, Critic  # noqa: E402
 
 Params = Any
 

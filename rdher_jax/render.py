@@ -126,6 +126,10 @@ def select_gl() -> str:
 def fetch_camera():
     """A free ``MjvCamera`` set as gymnasium-robotics' ``MujocoFetchEnv`` sets its renderer's."""
     import mujoco
+
+    from rdher_jax._quiet import quiet_imports
+
+    quiet_imports()
     from gymnasium_robotics.envs.fetch.fetch_env import DEFAULT_CAMERA_CONFIG
 
     cam = mujoco.MjvCamera()
