@@ -38,7 +38,8 @@ def default_backend() -> str:
 
 def make_env(name: str, backend: str | None = None, scene: str | None = None,
              auto_reset: bool = True, num_threads: int | None = None,
-             goal_speed: float | None = None) -> FetchEnv:
+             goal_speed: float | None = None,
+             episode_length: int | None = None) -> FetchEnv:
     """Build a Fetch task.
 
     Args:
@@ -51,6 +52,7 @@ def make_env(name: str, backend: str | None = None, scene: str | None = None,
       num_threads: host threads for the native backend (default: all usable cores).
       goal_speed: moving tasks only: metres per step the goal moves (None: the task's, 0.011
         for FetchReachMoving, 0.005 for FetchPushMoving; 0 keeps the goal still).
+      episode_length: env steps per episode (None: the task's, 50).
     Returns:
       A ``FetchEnv`` with pure ``reset(key)`` and ``step(state, action)``.
     """
@@ -76,7 +78,9 @@ def make_env(name: str, backend: str | None = None, scene: str | None = None,
         from .mjx_backend import MjxBackend
 
         physics = MjxBackend(setup)
-    return FetchEnv(setup, physics, auto_reset=auto_reset)
+    if episode_length is not None and episode_length < 1:
+        raise ValueError(f"episode_length must be a positive integer, got {episode_length}")
+    return FetchEnv(setup, physics, auto_reset=auto_reset, episode_length=episode_length)
 
 
 __all__ = ["BACKENDS", "CPU_XLA_FLAGS", "EPISODE_LENGTH", "FetchEnv", "GYMNASIUM_TASK_NAMES",

@@ -122,13 +122,14 @@ def mat2euler(mat: jax.Array) -> jax.Array:
 class FetchEnv:
     """A Fetch task over a physics backend. Build it with ``rdher_jax.make_env``."""
 
-    def __init__(self, setup: Setup, backend, auto_reset: bool = True):
+    def __init__(self, setup: Setup, backend, auto_reset: bool = True,
+                 episode_length: int | None = None):
         self.setup = setup
         self.spec = setup.spec
         self.backend = backend
         self.auto_reset = auto_reset
         self.name = self.spec.name
-        self.episode_length = TASKS[self.name].episode_length
+        self.episode_length = int(episode_length or TASKS[self.name].episode_length)
         self.dt = setup.dt
         self.distance_threshold = self.spec.distance_threshold
         self.obs_size = 25 if self.spec.has_object else 10

@@ -23,7 +23,7 @@ from typing import Any, TypeVar
 from omegaconf import OmegaConf
 from omegaconf.errors import ConfigKeyError, OmegaConfBaseException
 
-from .tasks import TASK_NAMES, TASKS, defaults_doc
+from .tasks import MOVING_TASKS, TASK_NAMES, TASKS, defaults_doc
 
 ENV_NAMES: tuple[str, ...] = TASK_NAMES
 ALGO_NAMES: tuple[str, ...] = ("ddpg", "her", "archer", "cher", "dher", "rdher")
@@ -200,6 +200,15 @@ class Config:
         1.0001, "cher: proximity weight = cher_growth ** (gradient steps since the epoch began)"
     )
     gamma: float | None = _f(None, "discount in (0, 1); null: 1 - 1/T with T the episode length")
+    episode_length: int | None = _f(
+        None, "env steps per episode (T); null: the task's, 50 for every task (gymnasium-robotics' "
+        "max_episode_steps). The DHER authors' only Dy-Pushing registration uses 200"
+    )
+    goal_speed: float | None = _f(
+        None, "moving tasks only: metres the goal moves per env step (>= 0; 0 keeps it still); "
+        "null: the task's, 0.011 for FetchReachMoving and 0.005 for FetchPushMoving (the DHER "
+        "authors')"
+    )
     run_dir: str | None = _f(
         None, "output directory; null: runs/<env>-<algo>-s<seed>-<YYYYmmdd-HHMMSS>"
     )
@@ -295,13 +304,14 @@ def validate(cfg: Config) -> Config:
         "cher_sample",
         "policy_delay",
         "n_step",
+        "episode_length",
     )
     for name in positive:
         v = getattr(cfg, name)
         _check(v is None or v >= 1, f"{name} must be a positive integer, got {v}")
     _check(cfg.replay_k >= 0, f"replay_k must be >= 0, got {cfg.replay_k}")
     _check(cfg.target_every >= 0, f"target_every must be >= 0, got {cfg.target_every}")
-    T = TASKS[cfg.env].episode_length
+    T = episode_length(cfg)
     _check(cfg.n_step <= T, f"n_step must be <= the episode length {T}, got {cfg.n_step}")
     _check(
         cfg.batch_size <= cfg.buffer_size,
@@ -322,6 +332,7 @@ def validate(cfg: Config) -> Config:
         "cher_growth",
         "target_noise",
         "noise_clip",
+        "goal_speed",
     )
     for name in floats:
         v = getattr(cfg, name)
@@ -337,6 +348,11 @@ def validate(cfg: Config) -> Config:
     _check(0.0 <= cfg.dher_fraction <= 1.0,
            f"dher_fraction must be in [0, 1], got {cfg.dher_fraction}")
     _check(cfg.dher_tol > 0, f"dher_tol must be > 0, got {cfg.dher_tol}")
+    if cfg.goal_speed is not None:
+        _check(cfg.env in MOVING_TASKS,
+               f"goal_speed applies to the moving tasks ({', '.join(MOVING_TASKS)}), not "
+               f"{cfg.env}")
+        _check(cfg.goal_speed >= 0, f"goal_speed must be >= 0, got {cfg.goal_speed}")
     _check(cfg.cher_growth >= 1.0, f"cher_growth must be >= 1, got {cfg.cher_growth}")
     if cfg.cher_candidates is not None:
         _check(cfg.cher_candidates >= cfg.batch_size,
@@ -459,10 +475,15 @@ def default_run_dir(cfg: Config, now: datetime.datetime | None = None) -> str:
     return str(Path("runs") / f"{cfg.env}-{cfg.algo}-s{cfg.seed}-{stamp}")
 
 
+def episode_length(cfg: Config) -> int:
+    """T: ``cfg.episode_length``, or the task's when null."""
+    return cfg.episode_length if cfg.episode_length is not None else TASKS[cfg.env].episode_length
+
+
 def dher_records_needed(cfg: Config) -> int:
     """The matches one cycle can record: 2 points per step of each new episode, each with up to
     ``dher_partners`` partners."""
-    return 2 * cfg.num_envs * (TASKS[cfg.env].episode_length + 1) * cfg.dher_partners
+    return 2 * cfg.num_envs * (episode_length(cfg) + 1) * cfg.dher_partners
 
 
 def resolve(cfg: Config, now: datetime.datetime | None = None) -> Config:
@@ -486,7 +507,7 @@ def resolve(cfg: Config, now: datetime.datetime | None = None) -> Config:
         cfg,
         epochs=cfg.epochs if cfg.epochs is not None else task.epochs,
         n_cycles=cfg.n_cycles if cfg.n_cycles is not None else task.n_cycles,
-        gamma=cfg.gamma if cfg.gamma is not None else 1.0 - 1.0 / task.episode_length,
+        gamma=cfg.gamma if cfg.gamma is not None else 1.0 - 1.0 / episode_length(cfg),
         lambda_r=cfg.lambda_r if cfg.lambda_r is not None else lam_r,
         lambda_h=cfg.lambda_h if cfg.lambda_h is not None else lam_h,
         run_dir=run_dir if run_dir is not None else default_run_dir(cfg, now),

@@ -90,7 +90,8 @@ def build(cfg: Config):
     from .program import make_program
 
     backend, scene = resolve_backend(cfg)
-    env = make_env(cfg.env, backend=backend, scene=scene, auto_reset=False)
+    env = make_env(cfg.env, backend=backend, scene=scene, auto_reset=False,
+                   goal_speed=cfg.goal_speed, episode_length=cfg.episode_length)
     return env, make_program(cfg, env)
 
 

@@ -104,6 +104,10 @@ def test_overrides_are_typed() -> None:
         (["actor_lr=nan"], "actor_lr must be a finite number"),
         (["replay_k=-1"], "replay_k must be >= 0"),
         (["batch_size=512", "buffer_size=100"], "must not exceed buffer_size"),
+        (["goal_speed=0.01"], "goal_speed applies to the moving tasks"),
+        (["env=FetchPushMoving", "goal_speed=-0.01"], "goal_speed must be >= 0"),
+        (["episode_length=0"], "episode_length must be a positive integer"),
+        (["episode_length=3", "n_step=4"], "n_step must be <= the episode length 3"),
     ],
 )
 def test_errors_are_one_line(argv: list[str], fragment: str) -> None:
@@ -176,6 +180,15 @@ def test_resolve() -> None:
     kept = resolve(parse_args(["epochs=3", "n_cycles=4", "gamma=0.9", "run_dir=a"]))
     assert (kept.epochs, kept.n_cycles, kept.gamma, kept.run_dir) == (3, 4, 0.9, "a")
     assert resolve(parse_args(["resume=runs/old"])).run_dir == "runs/old"
+    # T sets the default discount and the DHER ring; a null episode_length stays null (old
+    # runs' config.yaml files resume unchanged).
+    long = resolve(parse_args(["env=FetchPushMoving", "algo=dher", "episode_length=200"]))
+    assert long.gamma == pytest.approx(1 - 1 / 200)
+    assert long.dher_records == max(65536, 2 * 2 * 201 * 8)
+    big = resolve(parse_args(["env=FetchPushMoving", "algo=dher", "episode_length=200",
+                              "num_envs=64"]))
+    assert big.dher_records == 2 * 64 * 201 * 8
+    assert reach.episode_length is None and reach.goal_speed is None
     with pytest.raises(ConfigError, match="differs from resume"):
         resolve(parse_args(["resume=runs/old", "run_dir=runs/new"]))
 

@@ -180,6 +180,30 @@ def test_goal_speed_parameter():
         make_env("FetchReach", "mujoco", goal_speed=0.01)
 
 
+def test_episode_length_and_goal_speed_reach_the_env():
+    """``episode_length=`` and ``goal_speed=`` (config keys) set the built env's T and goal
+    motion: an episode of T=7 steps is done at its 7th step, not before, and the goal moved
+    7 x speed along +y."""
+    from rdher_jax.config import parse_args, resolve
+    from rdher_jax.driver import build
+
+    cfg = resolve(parse_args(["env=FetchPushMoving", "episode_length=7", "goal_speed=0.003",
+                              "hidden=8", "buffer_size=1000", "batch_size=8"]))
+    env, _ = build(cfg)
+    assert env.episode_length == 7 and env.spec.goal_speed == 0.003
+    s0 = jax.jit(env.reset)(jax.random.PRNGKey(3))
+    step = jax.jit(env.step)
+    s, dones = s0, []
+    for _ in range(7):
+        s = step(s, jnp.zeros(4))
+        dones.append(bool(s.done))
+    assert dones == [False] * 6 + [True]
+    moved = np.asarray(s.obs["desired_goal"] - s0.obs["desired_goal"])
+    # The goal pauses only when the object reaches it; a still arm leaves the object 0.1 m
+    # away in x.
+    np.testing.assert_allclose(moved, [0.0, 0.021, 0.0], atol=1e-6)
+
+
 def test_push_moving_reset_and_goal_motion():
     env = make_env("FetchPushMoving", "mujoco", auto_reset=False)
     n = 4
