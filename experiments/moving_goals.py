@@ -1,118 +1,85 @@
-"""HER against DHER and RDHER on a moving-goal task, a few seeds each, on this CPU.
+"""HER against DHER (and RDHER) on the moving-goal tasks, with the DHER share and mix varied.
 
-DHER was made for goals that move. This runs one vmapped sweep per algorithm (seeds as the
-run axis) on ``FetchReachMoving`` (or ``--env``), then writes a table of best and final test
-success, the batch composition and the hindsight bias per source, a plot of the mean test
-success over seeds against env steps, and each run's metrics CSV, under
-``experiments/results/moving_goals/``. Run directories (with checkpoints) go under ``runs/``; a
-second call resumes them.
+DHER was made for goals that move (Fang et al., ICLR 2019). This runs, per task, one vmapped
+sweep per setting (its seeds the run axis) and writes the results as the paper's experiments do
+(``experiments/profiles.py``, ``experiments/report.py``): each run's ``metrics.csv`` as
+``<out>/moving/<profile>/<task>/<setting>/s<seed>.csv`` with a ``run_info.json``, then
+``summary.md`` (best and final success with intervals, each setting against HER with Welch's
+test, mean success per env-step window, the share of combined rows, the bias diagnostic, the
+wall clock) and the curves under ``<out>/moving/<profile>/``.
 
-    python experiments/moving_goals.py --seeds 3 --epochs 8
+Settings (``--settings``; default: her dher rdher):
+
+- ``her``: ``algo=her``.
+- ``dher``: ``algo=dher`` as the README runs it: the authors' share (``dher_fraction=0.8``, at
+  most 0.8·(1 − recent success) of a batch combined), the other rows 'future'-relabelled
+  (``replay_k=4``).
+- ``dher_plain``: the authors' mix: the rows that are not combined are not relabelled
+  (``replay_k=0``, as in mengf1/DHER ``dher_sample.py``).
+- ``dher_f0.2``, ``dher_f0.4``: a smaller cap on the combined share.
+- ``rdher``, ``rdher_f0.2``: RDHER at the task's pair (moving tasks: λ_r = 2, λ_h = 1).
+
+Budgets (``--profile``): ``cpu`` is FetchReachMoving at the paper's learner for 8 epochs and
+FetchPushMoving under ``preset=fast`` for 100 epochs (250,000 env steps); ``paper`` is the
+paper's learner for 50 epochs (250,000 env steps on Push). Resumable: the sweeps live in
+``<runs-dir>/moving/<profile>/<task>/<setting>``; the same command continues an unfinished
+sweep and skips a finished one.
+
+    python experiments/moving_goals.py --profile cpu --tasks FetchReachMoving
+    python experiments/moving_goals.py --profile cpu --tasks FetchPushMoving \\
+        --settings her dher dher_f0.2
 """
 
 from __future__ import annotations
 
 import argparse
-import csv
-import platform
-import statistics
 import sys
-from pathlib import Path
 
-ALGOS = ("her", "dher", "rdher")
+from profiles import Setting, add_common_args, run_experiment
+
+KIND = "moving"
+
+# name -> (label, algo, the sweep's own key=value tokens). The shares use a one-value grid so
+# that the run names and summary carry the value.
+SETTINGS: dict[str, tuple[str, str, tuple[str, ...]]] = {
+    "her": ("HER", "her", ()),
+    "dher": ("DHER (share 0.8, 'future' mix)", "dher", ()),
+    "dher_plain": ("DHER (share 0.8, authors' plain mix, replay_k=0)", "dher", ("replay_k=0",)),
+    "dher_f0.4": ("DHER (share 0.4)", "dher", ("grid.dher_fraction=[0.4]",)),
+    "dher_f0.2": ("DHER (share 0.2)", "dher", ("grid.dher_fraction=[0.2]",)),
+    "rdher": ("RDHER (share 0.8)", "rdher", ()),
+    "rdher_f0.2": ("RDHER (share 0.2)", "rdher", ("grid.dher_fraction=[0.2]",)),
+}
+DEFAULT_SETTINGS = ("her", "dher", "rdher")
 
 
-def read_rows(path: Path) -> list[dict]:
-    with open(path, newline="") as f:
-        return list(csv.DictReader(f))
+def sweeps_for(names: list[str]):
+    def sweeps(task: str) -> list[tuple]:
+        out = []
+        for name in names:
+            label, algo, extra = SETTINGS[name]
+            order = list(SETTINGS).index(name)
+            out.append((name, algo, None, (Setting(name, label, algo, None, order),), extra))
+        return out
+
+    return sweeps
 
 
-def mean_sd(xs: list[float]) -> str:
-    if len(xs) < 2:
-        return f"{xs[0]:.2f}"
-    return f"{statistics.mean(xs):.2f} ± {statistics.stdev(xs):.2f}"
-
-
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--env", default="FetchReachMoving")
-    ap.add_argument("--seeds", type=int, default=3)
-    ap.add_argument("--epochs", type=int, default=8)
-    ap.add_argument("--runs-dir", default="runs/moving_goals")
-    ap.add_argument("--out", default="experiments/results/moving_goals")
-    args = ap.parse_args()
-
-    from rdher_jax import sweep
-
-    runs = Path(args.runs_dir)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    curves: dict[str, tuple[list[float], list[float]]] = {}
-    lines = [
-        f"# HER, DHER and RDHER on {args.env}",
-        "",
-        f"`python experiments/moving_goals.py --env {args.env} --seeds {args.seeds} "
-        f"--epochs {args.epochs}` on {platform.machine()}, {platform.processor() or 'CPU'}; "
-        "defaults otherwise (2 envs, 40 updates of 256 per cycle, 10 cycles per epoch, 10 test "
-        "episodes). Mean ± std over seeds; bias columns: mean over the last epoch and seeds of "
-        "Q minus the observed discounted return, weighted as trained, per sample source.",
-        "",
-        "| algo | λ_r / λ_h | seeds | best test success | final test success | test success, "
-        "mean of last 3 epochs | DHER rows in batches (last epoch) | bias real | bias HER | "
-        "bias DHER |",
-        "|---|---|---|---|---|---|---|---|---|---|",
-    ]
-    for algo in ALGOS:
-        d = runs / f"{args.env}-{algo}"
-        argv = [f"env={args.env}", f"algo={algo}", f"seeds={args.seeds}",
-                f"epochs={args.epochs}", "progress=false"]
-        argv += [f"resume={d}"] if (d / "sweep.yaml").exists() else [f"sweep_dir={d}"]
-        if sweep.main(argv) not in (0, None):
-            sys.exit(f"error: the {algo} sweep failed")
-        run_dirs = sorted(p for p in d.iterdir() if (p / "metrics.csv").exists())
-        for p in run_dirs:  # the per-run CSVs are small: keep them with the results
-            (out / algo).mkdir(exist_ok=True)
-            (out / algo / f"{p.name}.csv").write_bytes((p / "metrics.csv").read_bytes())
-        rows = [read_rows(p / "metrics.csv") for p in run_dirs]
-        best = [max(float(r["test_success"]) for r in rs) for rs in rows]
-        final = [float(rs[-1]["test_success"]) for rs in rows]
-        last3 = [statistics.mean(float(r["test_success"]) for r in rs[-3:]) for rs in rows]
-
-        def last(col: str, rows=rows) -> str:
-            vals = [float(rs[-1][col]) for rs in rows if rs[-1][col] not in ("", "nan")]
-            return mean_sd(vals) if vals else "-"
-
-        first = read_rows(d / "summary.csv")[0]
-        lam = f"{float(first['lambda_r']):g} / {float(first['lambda_h']):g}"
-        lines.append(f"| {algo} | {lam} | {len(rows)} | {mean_sd(best)} | {mean_sd(final)} | "
-                     f"{mean_sd(last3)} | {last('frac_dher')} | {last('bias_real')} | "
-                     f"{last('bias_her')} | {last('bias_dher')} |")
-        steps = [float(r["env_steps"]) for r in rows[0]]
-        mean = [statistics.mean(float(rs[i]["test_success"]) for rs in rows)
-                for i in range(len(steps))]
-        curves[algo] = (steps, mean)
-    text = "\n".join(lines) + "\n"
-    (out / "summary.md").write_text(text)
-    print(text)
-
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for algo, (x, y) in curves.items():
-        ax.plot(x, y, marker="o", label=algo)
-    ax.set_xlabel("env steps")
-    ax.set_ylabel(f"test success (mean of {args.seeds} seeds)")
-    ax.set_title(args.env)
-    ax.set_ylim(-0.02, 1.02)
-    ax.grid(alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(out / "success.png", dpi=100)
-    print(f"wrote {out / 'summary.md'} and {out / 'success.png'}")
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    ap = argparse.ArgumentParser(prog="python experiments/moving_goals.py",
+                                 description=__doc__.split("\n\n")[0])
+    add_common_args(ap)
+    ap.add_argument("--settings", nargs="+", choices=tuple(SETTINGS),
+                    default=list(DEFAULT_SETTINGS),
+                    help="settings, run in the order given (default: her dher rdher); see the "
+                    "module docstring")
+    args = ap.parse_args(argv)
+    if args.tasks is None:
+        args.tasks = ["FetchReachMoving"]
+    return run_experiment(KIND, "moving_goals.py", args, argv,
+                          sweeps_for(list(dict.fromkeys(args.settings))))
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -35,7 +35,7 @@ from typing import Any
 
 from rdher_jax.config import Config, ConfigError
 from rdher_jax.runlog import write_text_atomic
-from rdher_jax.tasks import PAPER_TASKS
+from rdher_jax.tasks import MOVING_TASKS, PAPER_TASKS, TASK_NAMES
 from rdher_jax.tasks import TASKS as TASK_TABLE
 
 HERE = Path(__file__).resolve().parent
@@ -101,19 +101,35 @@ REACH_CPU = Budget(5, {"epochs": 5, "n_cycles": 10, **PAPER_LEARNER},
 # and every sweep resumes where it stopped, so they can be finished over several sittings.
 PUSH_CPU = Budget(3, {"preset": "fast", "epochs": 200},
                   "preset=fast, 200 epochs of 50 one-episode cycles (500,000 env steps per run)")
+# The moving-goal tasks (experiments/moving_goals.py). FetchReachMoving: the paper's learner,
+# where HER and DHER both reach 1.0 within 10 epochs. FetchPushMoving: preset=fast for 250,000
+# env steps; a setting of 3 seeds is about 1 h 45 min (HER) to 2 h 15 min (DHER) of one core.
+REACH_MOVING_CPU = Budget(3, {"epochs": 8, "n_cycles": 10, **PAPER_LEARNER},
+                          "the paper's learner; 8 epochs of 10 cycles (8,000 env steps per run)")
+PUSH_MOVING_CPU = Budget(3, {"preset": "fast", "epochs": 100},
+                         "preset=fast, 100 epochs of 50 one-episode cycles (250,000 env steps per "
+                         "run)")
 
 PROFILES: dict[str, Profile] = {
     "tiny": Profile("FetchReach smoke test: 2 epochs of 2 cycles, tiny networks, 2 seeds",
                     {"FetchReach": TINY}, ("FetchReach",)),
     "cpu": Profile("what a 2-core CPU finishes: FetchReach at the paper's settings for 5 epochs, "
-                   "5 seeds; FetchPush (--tasks FetchPush) preset=fast for 200 epochs, 3 seeds",
-                   {"FetchReach": REACH_CPU, "FetchPush": PUSH_CPU}, ("FetchReach",)),
+                   "5 seeds; FetchPush (--tasks FetchPush) preset=fast for 200 epochs, 3 seeds; "
+                   "the moving tasks: FetchReachMoving at the paper's settings for 8 epochs, "
+                   "FetchPushMoving preset=fast for 100 epochs, 3 seeds",
+                   {"FetchReach": REACH_CPU, "FetchPush": PUSH_CPU,
+                    "FetchReachMoving": REACH_MOVING_CPU, "FetchPushMoving": PUSH_MOVING_CPU},
+                   ("FetchReach",)),
     "paper": Profile(
         "the paper's budget for a GPU: Table 1's settings, 50 epochs (Reach 10 cycles each, "
         "others 50), 5 seeds, every task",
-        {t: Budget(5, {"epochs": 50, "n_cycles": TASK_TABLE[t].n_cycles, **PAPER_LEARNER},
-                   "the paper's settings (epochs: see profiles.py)")
-         for t in TASKS},
+        {**{t: Budget(5, {"epochs": 50, "n_cycles": TASK_TABLE[t].n_cycles, **PAPER_LEARNER},
+                      "the paper's settings (epochs: see profiles.py)")
+            for t in TASKS},
+         # The moving tasks at the same learner and budget (250,000 env steps for Push), 3 seeds.
+         **{t: Budget(3, {"epochs": 50, "n_cycles": TASK_TABLE[t].n_cycles, **PAPER_LEARNER},
+                      "the paper's settings on a moving-goal task, 3 seeds")
+            for t in MOVING_TASKS}},
         TASKS),
 }
 
@@ -159,6 +175,7 @@ class Job:
     outputs: tuple[Setting, ...]
     runs_dir: Path
     budget: Budget
+    extra: tuple[str, ...] = ()  # key=value tokens of this sweep alone (after the budget's)
 
     @property
     def sweep_dir(self) -> Path:
@@ -172,6 +189,7 @@ class Job:
         """The sweep's key=value arguments, without sweep_dir= / resume=."""
         out = [f"env={self.task}", f"algo={self.algo}"]
         out += [f"{k}={v}" for k, v in self.settings.items()]
+        out += list(self.extra)
         if self.lambdas is not None:
             out.append("lambdas=[" + ",".join(f"[{num(a)},{num(b)}]" for a, b in self.lambdas)
                        + "]")
@@ -181,16 +199,17 @@ class Job:
 
 def make_jobs(kind: str, profile: str, tasks: Sequence[str], runs_dir: Path,
               seeds: int | None, epochs: int | None,
-              sweeps: Callable[[str], list[tuple[str, str, Any, tuple[Setting, ...]]]]
-              ) -> list[Job]:
-    """One Job per (task, sweep) given by ``sweeps(task)`` -> [(name, algo, lambdas, outputs)]."""
+              sweeps: Callable[[str], list[tuple]]) -> list[Job]:
+    """One Job per (task, sweep) given by ``sweeps(task)`` -> [(name, algo, lambdas, outputs)],
+    or ``(name, algo, lambdas, outputs, extra)`` with ``extra`` the sweep's own key=value
+    tokens."""
     jobs = []
     for task in tasks:
         b = budget_for(profile, task)
         settings = b.resolved(epochs)
-        for name, algo, lambdas, outputs in sweeps(task):
+        for name, algo, lambdas, outputs, *extra in sweeps(task):
             jobs.append(Job(kind, profile, task, name, algo, lambdas, seeds or b.seeds,
-                            settings, outputs, runs_dir, b))
+                            settings, outputs, runs_dir, b, tuple(*extra)))
     return jobs
 
 
@@ -308,6 +327,7 @@ def collect(job: Job, out_root: Path, command: str, log=print) -> list[Path]:
                        "seeds": job.seeds, "settings": dict(job.settings),
                        "note": job.budget.note, "placeholder": job.budget.placeholder},
             "command": command,
+            "extra": list(job.extra),
             "sweep": {"name": job.name, "dir": _rel(d), "command": info.get("command"),
                       "runs": info.get("n_runs"), "program": info.get("program"),
                       "state_bytes_per_run": info.get("state_bytes_per_run")},
@@ -335,8 +355,8 @@ def add_common_args(ap: Any) -> None:
     ap.add_argument("--profile", choices=tuple(PROFILES), required=True,
                     help="budget profile (see experiments/profiles.py): "
                     + "; ".join(f"{k}: {p.doc}" for k, p in PROFILES.items()))
-    ap.add_argument("--tasks", nargs="+", choices=TASKS, default=None, metavar="TASK",
-                    help=f"tasks to run, of {', '.join(TASKS)}; default: the profile's "
+    ap.add_argument("--tasks", nargs="+", choices=TASK_NAMES, default=None, metavar="TASK",
+                    help=f"tasks to run, of {', '.join(TASK_NAMES)}; default: the profile's "
                     "(tiny, cpu: FetchReach; paper: all four)")
     ap.add_argument("--seeds", type=int, default=None,
                     help="seeds 0..N-1; default: the profile's for the task")
@@ -360,8 +380,7 @@ def add_common_args(ap: Any) -> None:
 
 
 def run_experiment(kind: str, script: str, args: Any, argv: Sequence[str],
-                   sweeps: Callable[[str], list[tuple[str, str, Any, tuple[Setting, ...]]]]
-                   ) -> int:
+                   sweeps: Callable[[str], list[tuple]]) -> int:
     """Plan, run (or resume, or skip) and collect every sweep, then write the report.
 
     Returns the exit status: 0, or 2 after a one-line ``error:`` for a bad setting.

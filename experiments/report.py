@@ -39,7 +39,7 @@ from rdher_jax.runlog import write_text_atomic
 from rdher_jax.tasks import PAPER_TASKS, TASKS
 
 HERE = Path(__file__).resolve().parent
-KINDS = ("ablation", "benchmark")
+KINDS = ("ablation", "benchmark", "moving")
 LAST = 3  # epochs averaged for "final" success and for the bias diagnostic
 BIAS_COLS = ("bias_real", "bias_her", "bias_dher", "bias_unw_real", "bias_unw_her",
              "bias_unw_dher")
@@ -219,6 +219,25 @@ def vs_her(s: SettingData, data: Sequence[SettingData]) -> dict[str, tuple[float
     return {k: welch(list(mine[k].values()), list(ref[k].values())) for k in ("final", "mean")}
 
 
+def windows(s: SettingData) -> list[tuple[str, Stat]]:
+    """Per env-step window (the fractions :data:`WINDOWS` of the longest run's steps): the mean
+    over seeds of each seed's mean test success over the epochs that end in the window."""
+    succ, steps = s.column("test_success"), s.column("env_steps")
+    top = max((max(v) for v in steps.values() if v), default=0.0)
+    out, lo = [], 0.0
+    for frac in WINDOWS:
+        hi = frac * top
+        per = [statistics.fmean(x for x, n in zip(succ[k], steps[k], strict=True) if lo < n <= hi)
+               for k in succ if any(lo < n <= hi for n in steps[k])]
+        out.append((f"{_k(lo)}-{_k(hi)} steps", stat(per)))
+        lo = hi
+    return out
+
+
+def _k(n: float) -> str:
+    return f"{n / 1000:.0f}k" if n >= 1000 else f"{n:.0f}"
+
+
 def hms(seconds: float | None) -> str:
     if seconds is None or not math.isfinite(seconds):
         return "-"
@@ -271,7 +290,9 @@ def _md_table(head: Sequence[str], rows: Iterable[Sequence[str]]) -> list[str]:
 # ------------------------------------------------------------------ markdown and csv
 
 TITLES = {"ablation": "Ablation of the reward weights (paper section 5.2, Figs. 4-8)",
-          "benchmark": "Benchmark of the algorithms (paper section 5.3, Fig. 9, Tables 2-3)"}
+          "benchmark": "Benchmark of the algorithms (paper section 5.3, Fig. 9, Tables 2-3)",
+          "moving": "HER against DHER on the moving-goal tasks (experiments/moving_goals.py)"}
+WINDOWS = (0.4, 0.8, 1.0)  # moving: mean test success over these fractions of the env steps
 
 
 def _budget_lines(data: Sequence[SettingData]) -> list[str]:
@@ -300,6 +321,9 @@ def _intro(kind: str, profile: str, data: Sequence[SettingData]) -> list[str]:
            "other keys at the trainer's defaults, which are the paper's Table 1):", "",
            *_budget_lines(data), "",
            "Commands:", "", *[f"- `{c}`" for c in commands], ""]
+    if kind == "moving":
+        out += ["Each setting is one vmapped sweep of its seeds; the keys a setting adds to the "
+                "budget's are in its `run_info.json` (`extra`).", ""]
     if kind == "ablation":
         out += ["Vanilla HER is `algo=her`, a sweep of its own: under `algo=rdher` the pair "
                 "(1, 1) is DHER (combined rows mixed with 'future' rows), which the paper lists "
@@ -407,6 +431,26 @@ def summary_markdown(kind: str, profile: str, data: Sequence[SettingData]) -> st
         rows.append(row)
     out += _md_table(head, rows)
     out.append("")
+
+    if kind == "moving":
+        out += ["## Over the budget: mean test success per env-step window (%)", "",
+                "Per seed the mean test success over the epochs that end in the window, then "
+                "mean ± std over seeds. Combined rows: the share of each batch that DHER "
+                f"combined, per seed the mean over its last {LAST} epochs (the cap is "
+                "dher_fraction·(1 − success rate of the last 100 episodes)).", ""]
+        head, rows = None, []
+        for s in data:
+            ws = windows(s)
+            head = head or ["task", "setting", "seeds", *[w for w, _ in ws], "best",
+                            "final", "combined rows"]
+            share = [statistics.fmean(v[-LAST:]) for v in s.column("frac_dher").values()
+                     if v and all(math.isfinite(x) for x in v[-LAST:])]
+            rows.append([s.task, s.meta.get("label", s.name), str(len(s.runs)),
+                         *[pm(st) for _, st in ws], pm(stats[(s.task, s.name)]["best"]),
+                         pm(stats[(s.task, s.name)]["final"]),
+                         "-" if s.meta.get("algo") not in ("dher", "rdher") else pm(stat(share))])
+        out += _md_table(head or [], rows)
+        out.append("")
 
     out += ["## Wall clock", "",
             "Per sweep: its runs are one vmapped program and share its wall clock (from the "

@@ -20,6 +20,7 @@ sys.path.insert(0, str(EXP))
 
 import ablation  # noqa: E402
 import benchmark  # noqa: E402
+import moving_goals  # noqa: E402
 import profiles  # noqa: E402
 import report  # noqa: E402
 
@@ -199,7 +200,42 @@ def test_cpu_push_budget_is_preset_fast(tmp_path, capsys):
     assert "epochs=3" in ln
 
 
-@pytest.mark.parametrize("script", ["ablation.py", "benchmark.py", "report.py"])
+def test_moving_goals_plans_each_setting_with_its_own_keys(tmp_path, capsys):
+    args = ["--profile", "cpu", "--tasks", "FetchPushMoving", "--out", str(tmp_path / "out"),
+            "--runs-dir", str(tmp_path / "runs"), "--dry-run", "--settings", "her", "dher_plain",
+            "dher_f0.2"]
+    assert moving_goals.main(args) == 0
+    lines = [x for x in capsys.readouterr().out.splitlines() if "(dry run)" in x]
+    assert len(lines) == 3
+    for ln in lines:
+        assert "env=FetchPushMoving" in ln and "preset=fast" in ln and "epochs=100" in ln
+        assert "seeds=3" in ln
+    assert "algo=her" in lines[0] and "replay_k" not in lines[0] and "grid" not in lines[0]
+    assert "algo=dher" in lines[1] and "replay_k=0" in lines[1]
+    assert "'grid.dher_fraction=[0.2]'" in lines[2]
+    sweep_dir = tmp_path / "runs" / "moving" / "cpu" / "FetchPushMoving" / "dher_f0.2"
+    assert f"sweep_dir={sweep_dir}" in lines[2]
+    # A task without a budget in the profile is a one-line error, exit 2.
+    assert moving_goals.main(["--profile", "tiny", "--tasks", "FetchPushMoving", "--dry-run",
+                              "--runs-dir", str(tmp_path / "runs")]) == 2
+    assert "profile tiny has no budget for FetchPushMoving" in capsys.readouterr().err
+
+
+def test_windows_of_a_moving_goal_table():
+    # Two seeds of 5 epochs of 100 steps: windows (0, 200], (200, 400], (400, 500].
+    rows = {s: [{"env_steps": str(100 * (i + 1)), "test_success": str(v)}
+                for i, v in enumerate(vals)]
+            for s, vals in {0: [0.0, 0.2, 0.4, 0.6, 1.0], 1: [0.2, 0.2, 0.6, 0.6, 0.8]}.items()}
+    s = report.SettingData("FetchPushMoving", "her", {}, rows)
+    (n0, w0), (n1, w1), (n2, w2) = report.windows(s)
+    assert (n0, n1, n2) == ("0-200 steps", "200-400 steps", "400-500 steps")
+    assert math.isclose(w0.mean, (0.1 + 0.2) / 2) and w0.n == 2
+    assert math.isclose(w1.mean, (0.5 + 0.6) / 2)
+    assert math.isclose(w2.mean, 0.9) and math.isclose(w2.std, math.sqrt(0.02))
+
+
+@pytest.mark.parametrize("script", ["ablation.py", "benchmark.py", "report.py",
+                                    "moving_goals.py"])
 def test_help(script):
     proc = subprocess.run([sys.executable, str(EXP / script), "--help"], capture_output=True,
                           text=True, timeout=60)
