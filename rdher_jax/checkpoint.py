@@ -116,15 +116,53 @@ def _arrays(tree: Any) -> Any:
     return jax.tree_util.tree_map(lambda x: np.asarray(x) if isinstance(x, np.generic) else x, tree)
 
 
+def _host_tree(tree: Any) -> Any:
+    """``tree`` for orbax to save: itself with one process; with several (a multi-process
+    sweep), the same leaves as host arrays in nested dicts keyed as orbax keys them on disk.
+
+    Orbax refuses to save a process-local ``jax.Array`` when JAX runs several processes, and
+    some nodes turn host arrays back into ``jax.Array`` when rebuilt (brax's ``UInt64``), so
+    the tree's own classes cannot carry host arrays there. The files are the same either way,
+    and a restore into the original template gives its classes back.
+    """
+    if jax.process_count() == 1:
+        return _arrays(tree)
+    out: dict[str, Any] = {}
+    for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]:
+        keys = [_key_str(k) for k in path] or ["<root>"]
+        node = out
+        for k in keys[:-1]:
+            node = node.setdefault(k, {})
+        node[keys[-1]] = np.asarray(leaf)
+    return out
+
+
+def _options(collective: bool) -> ocp.options.MultiprocessingOptions:
+    """Orbax's multi-process options of a slot.
+
+    One process: orbax's defaults. Several (a multi-process sweep, ``rdher_jax.distributed``):
+    a ``collective`` slot is saved by every process together, each writing the shards of a
+    global ``jax.Array`` on its own devices (the sweep's latest state); any other slot is
+    process 0's alone (a run's best policy, as host arrays, which orbax writes from process 0
+    only).
+    """
+    if jax.process_count() == 1 or collective:
+        return ocp.options.MultiprocessingOptions()
+    return ocp.options.MultiprocessingOptions(primary_host=0, active_processes={0},
+                                              barrier_sync_key_prefix="process0")
+
+
 class _Slot:
     """One checkpoint directory holding a single step (``latest`` or ``best``)."""
 
-    def __init__(self, directory: Path, read_only: bool) -> None:
+    def __init__(self, directory: Path, read_only: bool, collective: bool = False) -> None:
         self.directory = directory
         self.read_only = read_only
+        self.collective = collective
         if not read_only:
             directory.mkdir(parents=True, exist_ok=True)
-            _tidy(directory)
+            if jax.process_index() == 0:  # one tidier of a directory all processes share
+                _tidy(directory)
         self._mgr: ocp.CheckpointManager | None = None
 
     @property
@@ -136,15 +174,20 @@ class _Slot:
                 enable_async_checkpointing=False,  # "saved" must mean "on disk"
                 # Read-only is enforced here rather than with orbax's read_only option,
                 # which logs warnings on every open.
-                create=not self.read_only,
+                # A writable slot made its directory itself (orbax cannot create it for
+                # one process of several).
+                create=not self.read_only and jax.process_count() == 1,
                 cleanup_tmp_directories=False,  # _tidy did it, synchronously
+                multiprocessing_options=_options(self.collective),
             )
             self._mgr = ocp.CheckpointManager(
                 self.directory.absolute(),
                 options=options,
                 item_handlers={
-                    "state": ocp.StandardCheckpointHandler(),
-                    "meta": ocp.JsonCheckpointHandler(),
+                    "state": ocp.StandardCheckpointHandler(
+                        multiprocessing_options=_options(self.collective)),
+                    "meta": ocp.JsonCheckpointHandler(
+                        multiprocessing_options=_options(self.collective)),
                 },
             )
         return self._mgr
@@ -176,11 +219,13 @@ class _Slot:
         # silently skip saving an existing or older step, so they go first.
         stale = [s for s in self.mgr.all_steps() if s >= step]
         for s in stale:
-            _remove(self.directory / str(s))
+            if jax.process_index() == 0:  # a collective slot's directory is shared
+                _remove(self.directory / str(s))
         if stale:
             self.mgr.reload()
         args = ocp.args.Composite(
-            state=ocp.args.StandardSave(_arrays(tree)), meta=ocp.args.JsonSave(meta)
+            state=ocp.args.StandardSave(tree if self.collective else _host_tree(tree)),
+            meta=ocp.args.JsonSave(meta)
         )
         saved = self.mgr.save(step, args=args, force=True)
         self.mgr.wait_until_finished()
@@ -209,11 +254,22 @@ class _Slot:
                     f"checkpoint {self.directory / str(step)} does not fit the template: "
                     f"{diff[0]}{more}"
                 )
-        state_args = ocp.args.StandardRestore(template)
+        multi = template is not None and jax.process_count() > 1 and not self.collective
+        state_args = ocp.args.StandardRestore(_host_tree(template) if multi else template)
         restored = self.mgr.restore(
             step, args=ocp.args.Composite(state=state_args, meta=ocp.args.JsonRestore())
         )
-        return step, restored.state, dict(restored.meta or {})
+        state = restored.state
+        if multi:  # saved by _host_tree as nested dicts: back into the template's classes
+            paths, treedef = jax.tree_util.tree_flatten_with_path(template)
+            leaves = []
+            for path, _ in paths:
+                node = state
+                for k in [_key_str(k) for k in path] or ["<root>"]:
+                    node = node[k]
+                leaves.append(node)
+            state = jax.tree_util.tree_unflatten(treedef, leaves)
+        return step, state, dict(restored.meta or {})
 
     def close(self) -> None:
         if self._mgr is not None:
@@ -232,11 +288,15 @@ class Checkpointer:
     """
 
     def __init__(self, run_dir: str | Path, read_only: bool = False, latest: bool = True,
-                 best: bool = True) -> None:
+                 best: bool = True, latest_name: str = "latest",
+                 collective: bool = False) -> None:
         self.directory = Path(run_dir) / "checkpoints"
         # A sweep keeps its stacked latest state in its own directory and each run's best
-        # policy in the run's, so either slot can be left out.
-        self._latest = _Slot(self.directory / "latest", read_only) if latest else None
+        # policy in the run's, so either slot can be left out. ``collective``: the latest state
+        # is a global array that every process of a multi-process sweep saves together, under
+        # a name of its own (``latest_name``).
+        self._latest = (_Slot(self.directory / latest_name, read_only, collective)
+                        if latest else None)
         self._best = _Slot(self.directory / "best", read_only) if best else None
         self._slots = [s for s in (self._latest, self._best) if s is not None]
 

@@ -162,6 +162,9 @@ class RunBatch:
         self.n_runs = n_runs
         self.n_padded = -(-n_runs // d) * d
         self.mesh = None
+        # This process's block of the (padded) run axis: all of it, unless the devices span
+        # several processes (rdher_jax.distributed), each of which owns a contiguous block.
+        self.lo, self.hi = 0, self.n_padded
         if d == 1:
             # Committed to the device, as restored checkpoints are: jit's cache tells committed
             # from uncommitted inputs, and a resume in the same process should not recompile.
@@ -175,6 +178,13 @@ class RunBatch:
 
         self.mesh = Mesh(np.array(self.devices), ("runs",))
         self.sharding = NamedSharding(self.mesh, P("runs"))
+        blocks = sorted((sl[0].start or 0, sl[0].stop if sl[0].stop is not None
+                         else self.n_padded)
+                        for sl in self.sharding.addressable_devices_indices_map(
+                            (self.n_padded,)).values())
+        self.lo, self.hi = blocks[0][0], blocks[-1][1]
+        if any(a[1] != b[0] for a, b in zip(blocks, blocks[1:], strict=False)):
+            raise ValueError(f"this process's devices hold runs {blocks}, not one block")
 
         def split(f):
             # check_vma=False: pure_callback results (the native physics) carry no
@@ -205,16 +215,46 @@ class RunBatch:
         """
         return jax.tree.map(lambda x: np.asarray(x)[: self.n_runs], jax.device_get(tree))
 
+    @property
+    def multi_process(self) -> bool:
+        """Whether the run axis spans the devices of several processes."""
+        return self.mesh is not None and not self.sharding.is_fully_addressable
+
+    def host(self, tree: Any) -> Any:
+        """Every run of a run-sharded tree (padding included) as host arrays.
+
+        One process: a plain fetch (see :meth:`unpad`: no collective). Several: each process's
+        block gathered to every process (``process_allgather``), a collective that every
+        process must make at the same point of the loop.
+        """
+        if not self.multi_process:
+            return jax.tree.map(np.asarray, jax.device_get(tree))
+        from jax.experimental import multihost_utils
+
+        return jax.tree.map(np.asarray, multihost_utils.process_allgather(tree, tiled=True))
+
     def put(self, tree: Any) -> Any:
-        """Pad and place ``tree`` as the program's inputs are placed."""
-        return jax.device_put(self.pad(tree), self.sharding)
+        """Pad and place ``tree`` (every run's values, the same on every process) as the
+        program's inputs are placed."""
+        if not self.multi_process:
+            return jax.device_put(self.pad(tree), self.sharding)
+        full = jax.tree.map(np.asarray, self.pad(tree))
+        return jax.tree.map(lambda x: jax.make_array_from_callback(
+            x.shape, self.sharding, lambda idx: x[idx]), full)
+
+    def abstract(self, tree: Any) -> Any:
+        """The shapes, dtypes and shardings of a run-sharded tree (a restore template)."""
+        return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype,
+                                                           sharding=x.sharding), tree)
 
     def describe(self) -> str:
         if self.mesh is None:
             return f"one device ({self.devices[0]})"
         pad = (f", padded from {self.n_runs} with copies of the first run"
                if self.n_padded != self.n_runs else "")
-        return (f"shard_map over mesh ('runs',) of {len(self.devices)} devices, "
+        procs = len({d.process_index for d in self.devices})
+        over = f" in {procs} processes" if procs > 1 else ""
+        return (f"shard_map over mesh ('runs',) of {len(self.devices)} devices{over}, "
                 f"{self.n_padded // len(self.devices)} runs per device{pad}")
 
 
@@ -429,6 +469,40 @@ def check_out_dir(plan: Plan) -> None:
         check_fresh_dir(plan.out_dir, what)
 
 
+def latest_slot(processes: int) -> str:
+    """The name of a sweep's latest-state checkpoint slot: ``latest`` with one process,
+    ``latest-<N>-processes`` when N processes save it together."""
+    return "latest" if processes == 1 else f"latest-{processes}-processes"
+
+
+def check_process_count(out_dir: Path, processes: int) -> None:
+    """A sweep checkpointed by N processes resumes only with N: a one-line ConfigError naming
+    the number it needs otherwise."""
+    ck = Path(out_dir) / "checkpoints"
+    if not ck.is_dir():
+        return
+    found = set()
+    for p in ck.iterdir():
+        if p.name == "latest" and any(q.name.isdigit() for q in p.iterdir()):
+            found.add(1)
+        elif p.name.startswith("latest-") and p.name.endswith("-processes"):
+            try:
+                found.add(int(p.name.split("-")[1]))
+            except ValueError:
+                continue
+    if found and processes not in found:
+        need = max(found)
+        how = "in one process" if need == 1 else f"with num_processes={need}"
+        raise ConfigError(f"{out_dir} was checkpointed by {need} process"
+                          f"{'es' if need > 1 else ''}; resume it {how}, not with {processes}")
+
+
+def _owner(batch: RunBatch, i: int) -> int:
+    """The process whose devices step run ``i``."""
+    per = batch.n_padded // len(batch.devices)
+    return int(batch.devices[i // per].process_index)
+
+
 # ------------------------------------------------------------------ the loop
 
 def _row_of(metrics: Any, i: int) -> Any:
@@ -443,70 +517,103 @@ def drive(plan: Plan, argv: Sequence[str] = (), prog: str = "", log=print,
     run's best test success), "diverged" ({name: epoch}), "program", "summary" (sweep: the
     summary's runs and settings)}``.
     """
+    from . import distributed
     from .program import hparams_from_config
 
     argv = list(argv)
     runs, cfg, n = plan.runs, plan.runs[0], len(plan.runs)
     names = list(plan.names)
-    check_out_dir(plan)
+    main = distributed.is_main()
+    procs = distributed.count()
+    if procs > 1 and not plan.sweep:
+        raise ConfigError("a run of its own is one process; start a multi-process sweep with "
+                          "python -m rdher_jax.sweep")
+    if main:
+        check_out_dir(plan)
+    if plan.sweep and plan.resume:
+        check_process_count(plan.out_dir, procs)
     env, _, batch = batch_for(runs, devices, vmapped=plan.sweep)
     hps = batch.put(stack([hparams_from_config(c) for c in runs]))
     keys = batch.put(stack([jax.random.PRNGKey(c.seed) for c in runs]))
     ts = batch.init(keys, hps)
+    # The runs this process steps: all of them with one process. With several, each steps
+    # its own block of the run axis, and process 0 writes every run's files (metrics, plots,
+    # best policies: orbax writes host data from process 0 only), from the metrics and
+    # policies the processes gather to each other between epochs.
+    mine = [i for i in range(n) if batch.lo <= i < batch.hi]
 
-    if not plan.resume:
+    if not plan.resume and main:
         make_dir(plan.out_dir, "sweep_dir" if plan.sweep else "run_dir")
-    outs = [RunOutputs(c, Path(c.run_dir), latest=not plan.sweep) for c in runs]
-    ckpt = Checkpointer(plan.out_dir, best=False) if plan.sweep else outs[0].ckpt
+    distributed.barrier("rdher_jax.drive.out_dir")
+    outs = ({i: RunOutputs(c, Path(c.run_dir), latest=not plan.sweep)
+             for i, c in enumerate(runs)} if main else {})
+    # The sweep's latest state: with several processes a global array that they save
+    # together (each its own runs' shards) under a slot named by their number.
+    ckpt = (Checkpointer(plan.out_dir, best=False, latest_name=latest_slot(procs),
+                         collective=procs > 1)
+            if plan.sweep else outs[0].ckpt)
+    best = [-1.0] * n  # every run's best test success so far, on every process
     info = run_info(cfg, argv, prog)
     if plan.sweep:
         per_run = tree_bytes(ts) // batch.n_padded
         info.update(runs=names, n_runs=n, n_padded=batch.n_padded,
                     program=batch.describe(), state_bytes_per_run=per_run,
                     state_bytes=per_run * batch.n_padded)
+    if procs > 1:
+        info.update(processes=procs, hosts=distributed.hosts(),
+                    process_of_run={names[i]: _owner(batch, i) for i in range(n)})
 
     def saved(ts):  # the latest checkpoint: a sweep's stacked state, a run's own
+        if batch.multi_process:  # the global array, padding included
+            return ts
         host = batch.unpad(ts)
         return host if plan.sweep else jax.tree.map(lambda x: x[0], host)
 
     start, wall0, diverged = 0, 0.0, {}
     if plan.resume and ckpt.latest_epoch() is not None:
-        start, state, meta = restore_or_refuse(ckpt, saved(ts), plan.out_dir)
+        template = batch.abstract(ts) if batch.multi_process else saved(ts)
+        start, state, meta = restore_or_refuse(ckpt, template, plan.out_dir)
         if plan.sweep and meta.get("runs") != names:
             raise ConfigError(f"cannot resume {plan.out_dir}: its checkpoint holds runs "
                               f"{meta.get('runs')}, not {names}")
-        ts = batch.put(state if plan.sweep else stack([state]))
+        if batch.multi_process:
+            ts = state
+        else:
+            ts = batch.put(state if plan.sweep else stack([state]))
         del state
         try:
             wall0 = float(meta["wall_time"])
             bests = meta["best_success"]
-            bests = [float(b) for b in (bests if plan.sweep else [bests])]
+            best = [float(b) for b in (bests if plan.sweep else [bests])]
             diverged = {k: int(v) for k, v in meta.get("diverged", {}).items()
                         if int(v) <= start}
-        except (KeyError, TypeError, ValueError, AttributeError) as e:
+        except (KeyError, TypeError, ValueError, AttributeError, IndexError) as e:
             raise ConfigError(f"cannot resume {plan.out_dir}: its checkpoint's metadata is "
                               f"damaged ({type(e).__name__}: {e})") from None
-        for o, b in zip(outs, bests, strict=True):
-            o.rewind(start, b)
+        for i, o in outs.items():
+            o.rewind(start, best[i])
         log(f"resuming {plan.out_dir} after epoch {start}")
     else:
-        if plan.resume:  # killed before its first checkpoint: start over
+        if plan.resume and main:  # killed before its first checkpoint: start over
             log(f"{plan.out_dir} has no checkpoint yet; starting it over")
         if plan.sweep:
-            # The spec file goes last of the two: it is what marks a directory as a sweep's.
-            write_text_atomic(plan.out_dir / BASE_CONFIG_FILE, to_yaml(plan.base))
-            write_text_atomic(plan.out_dir / SPEC_FILE, summary.spec_yaml(plan.varies, names))
-            write_json_atomic(plan.out_dir / "run_info.json", info)
-            for o, name in zip(outs, names, strict=True):
-                o.start({**info, "sweep_dir": str(plan.out_dir), "run": name})
+            if main:
+                # The spec file goes last of the two: it is what marks a directory as a sweep's.
+                write_text_atomic(plan.out_dir / BASE_CONFIG_FILE, to_yaml(plan.base))
+                write_text_atomic(plan.out_dir / SPEC_FILE,
+                                  summary.spec_yaml(plan.varies, names))
+                write_json_atomic(plan.out_dir / "run_info.json", info)
+            for i, o in outs.items():
+                o.start({**info, "sweep_dir": str(plan.out_dir), "run": names[i]})
         else:
             outs[0].start(info)
-    if plan.sweep:
+    distributed.barrier("rdher_jax.drive.started")
+    if plan.sweep and main:
         summary.write(plan, diverged)
 
     steps_per_epoch = cfg.n_cycles * cfg.num_envs * env.episode_length * n
     bar = None
-    if cfg.progress:
+    if cfg.progress and main:
         from tqdm.auto import tqdm
 
         desc = f"{cfg.env} {cfg.algo}" + (f" x{n} runs" if plan.sweep else "")
@@ -517,20 +624,11 @@ def drive(plan: Plan, argv: Sequence[str] = (), prog: str = "", log=print,
     for epoch in range(start, cfg.epochs):
         t0 = time.perf_counter()
         ts, m = batch.epoch(ts, hps)
-        m = jax.device_get(m)
+        m = batch.host(m)  # every run's, on every process
         dt = time.perf_counter() - t0
-        host: dict[str, Any] = {}
-
-        def policies(ts=ts, host=host):
-            # Every run's learner state, fetched once and only when some run has a new best;
-            # sliced per run on the host (see RunBatch.unpad).
-            if "ddpg" not in host:
-                host["ddpg"] = jax.device_get(ts.ddpg)
-            return host["ddpg"]
-
         wall = time.perf_counter() - t_start
-        tests = []
-        for i, (o, name) in enumerate(zip(outs, names, strict=True)):
+        rows: dict[int, dict] = {}
+        for i, name in enumerate(names):
             if name in diverged:
                 continue
             row = epoch_row(epoch + 1, _row_of(m, i), wall)
@@ -541,10 +639,20 @@ def drive(plan: Plan, argv: Sequence[str] = (), prog: str = "", log=print,
                     raise TrainingDiverged(
                         f"{', '.join(bad)} became non-finite in epoch {epoch + 1}; stopped. "
                         f"{last_good_checkpoint(ckpt)}")
-                log(f"{name}: {', '.join(bad)} became non-finite in epoch {epoch + 1}; its "
-                    f"outputs stop at epoch {epoch}, the other runs go on")
+                if main:
+                    log(f"{name}: {', '.join(bad)} became non-finite in epoch {epoch + 1}; "
+                        f"its outputs stop at epoch {epoch}, the other runs go on")
                 continue
-            o.record(row, lambda i=i: _row_of(policies(), i))
+            rows[i] = row
+        # Learner states are fetched once, and only when some run has a new best (ties go to
+        # the later epoch, as in RunOutputs.record); sliced per run on the host.
+        new_best = [i for i, r in rows.items() if r["test_success"] >= best[i]]
+        pol = batch.host(ts.ddpg) if new_best else None
+        tests = []
+        for i, row in rows.items():
+            best[i] = max(best[i], float(row["test_success"]))
+            if i in outs:
+                outs[i].record(row, lambda i=i, pol=pol: _row_of(pol, i))
             last_rows[i] = row
             tests.append(row["test_success"])
         if len(diverged) == n:
@@ -552,33 +660,35 @@ def drive(plan: Plan, argv: Sequence[str] = (), prog: str = "", log=print,
                 f"the losses of every run became non-finite (the last in epoch {epoch + 1}); "
                 f"stopped. {last_good_checkpoint(ckpt)}")
         if is_checkpoint_epoch(cfg, epoch + 1):
-            bests = [o.best for o in outs]
+            bests = list(best)
             meta = ({"best_success": bests, "wall_time": round(wall, 3),
                      "diverged": diverged, "runs": names} if plan.sweep else
                     {"best_success": bests[0], "wall_time": round(wall, 3)})
             ckpt.save_latest(epoch + 1, saved(ts), meta)
-        if plan.sweep:
+        if plan.sweep and main:
             summary.write(plan, diverged)
         if bar is not None:
-            post = {"env_steps": int(np.max(m.env_steps)), "sps": f"{steps_per_epoch / dt:.0f}",
-                    "test": f"{np.mean(tests):.2f}"}
-            if plan.sweep:
-                post["best"] = f"{max(tests):.2f}"
-            bar.set_postfix(post)
+            if tests:  # this process's runs that have not diverged
+                post = {"env_steps": int(np.max(m.env_steps)),
+                        "sps": f"{steps_per_epoch / dt:.0f}", "test": f"{np.mean(tests):.2f}"}
+                if plan.sweep:
+                    post["best"] = f"{max(tests):.2f}"
+                bar.set_postfix(post)
             bar.update(1)
     if bar is not None:
         bar.close()
-    for o, i in zip(outs, range(n), strict=True):
+    for i, o in outs.items():
         if not last_rows[i]:
-            rows = o.csv.rows()
-            last_rows[i] = rows[-1] if rows else {}
+            done = o.csv.rows()
+            last_rows[i] = done[-1] if done else {}
         o.close()
     if plan.sweep:
         ckpt.close()
+    distributed.barrier("rdher_jax.drive.done")
     result = {"out_dir": str(plan.out_dir), "names": names, "rows": last_rows,
-              "best": [o.best for o in outs], "diverged": diverged,
-              "program": batch.describe()}
+              "best": best,
+              "diverged": diverged, "program": batch.describe(), "local": mine}
     if plan.sweep:
-        result["summary"] = summary.collect(plan, diverged)
+        result["summary"] = summary.collect(plan, diverged) if main else ([], [])
     return result
 

@@ -51,6 +51,9 @@ from .config import (
     unknown_key,
     validate,
 )
+from .distributed import PROCESS_KEYS
+from .distributed import initialize as join_processes
+from .distributed import parse as parse_process_keys
 from .driver import BASE_CONFIG_FILE, SPEC_FILE, Plan, TrainingDiverged, drive
 from .runlog import check_fresh_dir, check_resume_dir
 from .summary import num
@@ -66,6 +69,7 @@ SWEEP_KEYS: dict[str, str] = {
     "sweep_dir": "output directory; default runs/sweep-<env>-<algo>-<YYYYmmdd-HHMMSS>",
     "resume": "sweep directory to continue from its latest checkpoint; other keys may only "
               "change " + ", ".join(sorted(RESUMABLE_KEYS - {"run_dir", "resume"})),
+    **PROCESS_KEYS,
 }
 GRID = "grid."
 
@@ -288,18 +292,44 @@ def sweep(plan: Plan, argv: Sequence[str] | None = None, log=print,
     out = drive(plan, argv or [], prog=PROG, log=log, devices=devices)
     rows, settings = out["summary"]
     return {"sweep_dir": out["out_dir"], "runs": out["names"], "rows": rows,
-            "settings": settings, "diverged": out["diverged"], "program": out["program"]}
+            "settings": settings, "diverged": out["diverged"], "program": out["program"],
+            "local": out["local"]}
+
+
+def start_processes(argv: Sequence[str]) -> bool:
+    """Join a multi-process sweep when the command line (coordinator=, num_processes=,
+    process_id=) or the cluster (SLURM, Open MPI) asks for one; returns whether it did.
+
+    Every process must write into the same directory, so a multi-process sweep names it
+    (sweep_dir= or resume=) rather than taking the time-stamped default.
+    """
+    _, other = split_args(argv, extra=[k for k in SWEEP_KEYS if k != "grid.<key>"],
+                          prefixes=(GRID,))
+    multi = join_processes(parse_process_keys(other))
+    if multi and "sweep_dir" not in other and "resume" not in other:
+        raise ConfigError("a multi-process sweep needs sweep_dir= (or resume=): every process "
+                          "must name the same directory")
+    return multi
 
 
 @main_guard
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     plan = parse_sweep_args(argv)
+    multi = start_processes(argv)
     try:
         out = sweep(plan, argv)
     except TrainingDiverged as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
+    if multi:
+        import jax
+
+        mine = [out["runs"][i] for i in out.get("local", [])]
+        print(f"process {jax.process_index()} of {jax.process_count()}: runs "
+              f"{', '.join(mine) or '(none)'} done; results in {plan.out_dir}/")
+        if jax.process_index() != 0:
+            return 0
     md = (plan.out_dir / "summary.md").read_text(encoding="utf-8")
     print(md.split("\n\n| run |", 1)[0].rstrip())
     print(f"\n{len(out['runs'])} runs ({out['program']}); results in {plan.out_dir}/: "

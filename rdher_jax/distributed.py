@@ -1,0 +1,171 @@
+"""One sweep over several processes, through JAX's multi-controller runtime.
+
+The same ``python -m rdher_jax.sweep ...`` command is started once per process: by ``srun`` or
+``mpirun`` (``jax.distributed.initialize`` detects SLURM and Open MPI by itself), or by hand
+with ``coordinator=HOST:PORT num_processes=N process_id=I``. After :func:`initialize` every
+process sees every process's devices in ``jax.devices()``; the driver lays the sweep's run axis
+over all of them (``driver.RunBatch``), and each process steps, logs and checkpoints only the
+runs on its own devices. Nothing inside an epoch is a collective; between epochs the processes
+exchange one small array (which runs have diverged), which is also what keeps them in step.
+
+On CPU the cross-process collectives use gloo (``jax_cpu_collectives_implementation``).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import socket
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from .config import ConfigError
+
+# key -> help text; the sweep command line takes these (see sweep.SWEEP_KEYS).
+PROCESS_KEYS: dict[str, str] = {
+    "coordinator": "multi-process sweep: HOST:PORT of process 0's coordination service (every "
+                   "process passes the same); with num_processes and process_id. Not needed "
+                   "under SLURM or Open MPI, which the runtime detects",
+    "num_processes": "multi-process sweep: number of processes N, each started with the same "
+                     "command",
+    "process_id": "multi-process sweep: this process's index, 0 <= process_id < num_processes",
+    "init_timeout": "multi-process sweep: seconds to wait for every process to join (default "
+                    "300, the runtime's)",
+    "heartbeat_timeout": "multi-process sweep: seconds without a heartbeat after which a process "
+                         "counts as dead and the sweep stops (default 100, the runtime's)",
+}
+
+
+@dataclass(frozen=True)
+class ProcessSpec:
+    """How this process joins a multi-process sweep (all None: as the cluster says, or alone)."""
+
+    coordinator: str | None = None
+    num_processes: int | None = None
+    process_id: int | None = None
+    init_timeout: int = 300
+    heartbeat_timeout: int = 100
+
+    @property
+    def explicit(self) -> bool:
+        return self.num_processes is not None
+
+
+def _int(key: str, raw: str, lo: int) -> int:
+    try:
+        v = int(str(raw).strip())
+    except ValueError:
+        raise ConfigError(f"{key} must be an integer, got {raw!r}") from None
+    if v < lo:
+        raise ConfigError(f"{key} must be >= {lo}, got {v}")
+    return v
+
+
+def parse(other: Mapping[str, str]) -> ProcessSpec:
+    """The process keys of a command line (``{key: value text}``); one-line ConfigErrors."""
+    given = [k for k in ("coordinator", "num_processes", "process_id") if k in other]
+    if given and len(given) < 3:
+        missing = [k for k in ("coordinator", "num_processes", "process_id") if k not in other]
+        raise ConfigError(f"a multi-process sweep started by hand needs coordinator=HOST:PORT, "
+                          f"num_processes=N and process_id=I; missing {', '.join(missing)}")
+    spec: dict[str, Any] = {}
+    for key in ("init_timeout", "heartbeat_timeout"):
+        if key in other:
+            spec[key] = _int(key, other[key], 1)
+    if not given:
+        return ProcessSpec(**spec)
+    coord = other["coordinator"].strip()
+    if not re.fullmatch(r"\[?[A-Za-z0-9_.:-]+\]?:\d{1,5}", coord) or \
+            not 0 < int(coord.rsplit(":", 1)[1]) < 65536:
+        raise ConfigError(f"coordinator must be HOST:PORT (port 1-65535), got {coord!r}")
+    n = _int("num_processes", other["num_processes"], 1)
+    i = _int("process_id", other["process_id"], 0)
+    if i >= n:
+        raise ConfigError(f"process_id must be < num_processes ({n}), got {i}")
+    return ProcessSpec(coord, n, i, **spec)
+
+
+def cluster_detected() -> bool:
+    """Whether this process was started as one of several by SLURM or Open MPI."""
+    env = os.environ
+    if int(env.get("OMPI_COMM_WORLD_SIZE", "1") or 1) > 1:
+        return True
+    return "SLURM_JOB_ID" in env and int(env.get("SLURM_NTASKS", "1") or 1) > 1
+
+
+def initialize(spec: ProcessSpec) -> bool:
+    """Join the multi-process runtime when asked to (explicit keys, or SLURM/Open MPI); returns
+    whether this is a multi-process run. Must run before anything touches a JAX device.
+
+    A coordinator that cannot be reached, or processes that never all join, end in a one-line
+    ConfigError after ``init_timeout`` seconds.
+    """
+    import jax
+
+    if not spec.explicit and not cluster_detected():
+        return False
+    if spec.explicit and spec.num_processes == 1:
+        return False
+    if jax.distributed.is_initialized():
+        return jax.process_count() > 1
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    try:
+        jax.distributed.initialize(
+            coordinator_address=spec.coordinator, num_processes=spec.num_processes,
+            process_id=spec.process_id, initialization_timeout=spec.init_timeout,
+            heartbeat_timeout_seconds=spec.heartbeat_timeout)
+    except Exception as e:  # the runtime raises XlaRuntimeError, ValueError, RuntimeError
+        first = (str(e).strip().splitlines() or [type(e).__name__])[0]
+        where = (f" (coordinator {spec.coordinator}, process {spec.process_id} of "
+                 f"{spec.num_processes})" if spec.explicit else "")
+        raise ConfigError(f"could not join the multi-process sweep{where}: {first[:300]}") from None
+    return jax.process_count() > 1
+
+
+def index() -> int:
+    import jax
+
+    return jax.process_index()
+
+
+def count() -> int:
+    import jax
+
+    return jax.process_count()
+
+
+def is_main() -> bool:
+    """Process 0 (the only process of a one-process run) writes the sweep's shared files."""
+    return index() == 0
+
+
+def gather(x: Any) -> Any:
+    """Every process's ``x`` (an array of the same shape and dtype everywhere), stacked along a
+    new leading process axis, on every process. One process: ``x[None]``. A collective: every
+    process must call it at the same point."""
+    import numpy as np
+
+    if count() == 1:
+        return np.asarray(x)[None]
+    from jax.experimental import multihost_utils
+
+    return np.asarray(multihost_utils.process_allgather(np.asarray(x), tiled=False))
+
+
+def barrier(name: str) -> None:
+    """Wait until every process reaches the barrier ``name`` (nothing with one process)."""
+    if count() == 1:
+        return
+    from jax.experimental import multihost_utils
+
+    multihost_utils.sync_global_devices(name)
+
+
+def hosts() -> list[str]:
+    """Each process's host name, in process order."""
+    import numpy as np
+
+    name = socket.gethostname().encode()[:64].ljust(64, b"\0")
+    rows = gather(np.frombuffer(name, dtype=np.uint8))
+    return [bytes(r).rstrip(b"\0").decode(errors="replace") for r in rows]
