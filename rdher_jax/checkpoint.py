@@ -127,14 +127,9 @@ def _host_tree(tree: Any) -> Any:
     """
     if jax.process_count() == 1:
         return _arrays(tree)
-    out: dict[str, Any] = {}
-    for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]:
-        keys = [_key_str(k) for k in path] or ["<root>"]
-        node = out
-        for k in keys[:-1]:
-            node = node.setdefault(k, {})
-        node[keys[-1]] = np.asarray(leaf)
-    return out
+    # orbax's own nested dicts and lists of the tree, empty nodes kept.
+    plain = ocp.tree.serialize_tree(tree, keep_empty_nodes=True)
+    return jax.tree_util.tree_map(np.asarray, plain)
 
 
 def _options(collective: bool) -> ocp.options.MultiprocessingOptions:
@@ -261,14 +256,7 @@ class _Slot:
         )
         state = restored.state
         if multi:  # saved by _host_tree as nested dicts: back into the template's classes
-            paths, treedef = jax.tree_util.tree_flatten_with_path(template)
-            leaves = []
-            for path, _ in paths:
-                node = state
-                for k in [_key_str(k) for k in path] or ["<root>"]:
-                    node = node[k]
-                leaves.append(node)
-            state = jax.tree_util.tree_unflatten(treedef, leaves)
+            state = ocp.tree.deserialize_tree(state, template, keep_empty_nodes=True)
         return step, state, dict(restored.meta or {})
 
     def close(self) -> None:

@@ -109,6 +109,8 @@ def initialize(spec: ProcessSpec) -> bool:
         return False
     if jax.distributed.is_initialized():
         return jax.process_count() > 1
+    if spec.explicit:
+        _check_coordinator(spec)
     jax.config.update("jax_cpu_collectives_implementation", "gloo")
     try:
         jax.distributed.initialize(
@@ -121,6 +123,37 @@ def initialize(spec: ProcessSpec) -> bool:
                  f"{spec.num_processes})" if spec.explicit else "")
         raise ConfigError(f"could not join the multi-process sweep{where}: {first[:300]}") from None
     return jax.process_count() > 1
+
+
+def _check_coordinator(spec: ProcessSpec) -> None:
+    """What the runtime would end with an abort and a stack trace, as a one-line ConfigError:
+    process 0 cannot listen on the coordinator's port, or another process cannot reach it
+    within ``init_timeout`` seconds."""
+    import time
+
+    host, port = spec.coordinator.rsplit(":", 1)
+    host = host.strip("[]")
+    if spec.process_id == 0:
+        try:
+            with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as s:
+                s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                s.bind(("", int(port)))
+        except OSError as e:
+            raise ConfigError(f"process 0 cannot serve the coordinator on port {port}: "
+                              f"{e.strerror or e}") from None
+        return
+    deadline = time.monotonic() + spec.init_timeout
+    while True:
+        try:
+            with socket.create_connection((host, int(port)), timeout=2):
+                return
+        except OSError as e:
+            if time.monotonic() >= deadline:
+                raise ConfigError(
+                    f"could not reach the coordinator {spec.coordinator} within "
+                    f"{spec.init_timeout} s (init_timeout): {e.strerror or e}; start process 0 "
+                    "there, or check coordinator=") from None
+            time.sleep(0.5)
 
 
 def index() -> int:
