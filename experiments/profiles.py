@@ -377,6 +377,13 @@ def add_common_args(ap: Any) -> None:
                     "the sweeps run in another process) and write the report")
     ap.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                     help="progress bars (default: when stderr is a terminal)")
+    ap.add_argument("--coordinator", default=None, metavar="HOST:PORT",
+                    help="multi-process: process 0's coordination address; with "
+                    "--num-processes and --process-id, each process started with the same "
+                    "command (not needed under SLURM or Open MPI; see README, 'Sweeps over "
+                    "several machines')")
+    ap.add_argument("--num-processes", type=int, default=None, help="multi-process: N")
+    ap.add_argument("--process-id", type=int, default=None, help="multi-process: this one's index")
 
 
 def run_experiment(kind: str, script: str, args: Any, argv: Sequence[str],
@@ -388,11 +395,21 @@ def run_experiment(kind: str, script: str, args: Any, argv: Sequence[str],
     import shlex
     import sys
 
+    from rdher_jax import distributed
+
     try:
         for name in ("seeds", "epochs"):
             v = getattr(args, name)
             if v is not None and v < 1:
                 raise ConfigError(f"--{name} must be >= 1, got {v}")
+        keys = {"coordinator": args.coordinator, "num_processes": args.num_processes,
+                "process_id": args.process_id}
+        # Every sweep of the experiment runs over all the processes; process 0 collects and
+        # writes the results and the report.
+        if not args.dry_run:
+            distributed.initialize(distributed.parse(
+                {k: str(v) for k, v in keys.items() if v is not None}))
+        main = distributed.is_main()
         tasks = list(dict.fromkeys(args.tasks or PROFILES[args.profile].default_tasks))
         jobs = make_jobs(kind, args.profile, tasks, args.runs_dir, args.seeds, args.epochs,
                          sweeps)
@@ -402,10 +419,11 @@ def run_experiment(kind: str, script: str, args: Any, argv: Sequence[str],
             mine = [j for j in jobs if j.task == task]
             for job in mine:
                 if not args.collect_only:
-                    run_job(job, progress, dry_run=args.dry_run)
-                if not args.dry_run:
+                    run_job(job, progress and main, dry_run=args.dry_run,
+                            log=print if main else (lambda *a, **k: None))
+                if not args.dry_run and main:
                     collect(job, args.out, command)
-            if not args.dry_run:
+            if not args.dry_run and main:
                 import report
 
                 for p in report.write_reports(args.out, only={(kind, args.profile)}):
