@@ -18,7 +18,11 @@ TINY = dict(env="FetchReach", n_cycles=3, n_batches=4, batch_size=32, buffer_siz
             num_envs=2, n_test_rollouts=2, hidden=32, progress=False, dher_tol=0.1)
 
 
-@pytest.mark.parametrize("algo", ALGO_NAMES)
+# archer and dher are her and rdher with other reward weights (the same programs but for a
+# traced weight): slow, to keep the default suite's compilations down.
+@pytest.mark.parametrize("algo", [
+    pytest.param(a, marks=pytest.mark.slow) if a in ("archer", "dher") else a
+    for a in ALGO_NAMES])
 def test_every_algo_trains_a_few_cycles(tmp_path, algo):
     cfg = resolve(Config(**{**TINY, "algo": algo, "run_dir": str(tmp_path / algo)}))
     env, trainer = driver.build(cfg)
