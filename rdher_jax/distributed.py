@@ -87,11 +87,13 @@ def parse(other: Mapping[str, str]) -> ProcessSpec:
 
 
 def cluster_detected() -> bool:
-    """Whether this process was started as one of several by SLURM or Open MPI."""
+    """Whether this process was started as one of several by ``srun`` or ``mpirun``: a job
+    step of several tasks (``SLURM_STEP_NUM_TASKS``; a batch script's own python, outside
+    ``srun``, is one process whatever the allocation) or an Open MPI world of several."""
     env = os.environ
     if int(env.get("OMPI_COMM_WORLD_SIZE", "1") or 1) > 1:
         return True
-    return "SLURM_JOB_ID" in env and int(env.get("SLURM_NTASKS", "1") or 1) > 1
+    return "SLURM_JOB_ID" in env and int(env.get("SLURM_STEP_NUM_TASKS", "1") or 1) > 1
 
 
 def initialize(spec: ProcessSpec) -> bool:

@@ -87,14 +87,21 @@ def test_process_keys_are_checked(keys, fragment):
 
 
 def test_one_process_and_no_cluster_is_not_distributed(monkeypatch):
-    for k in ("OMPI_COMM_WORLD_SIZE", "SLURM_JOB_ID", "SLURM_NTASKS"):
+    for k in ("OMPI_COMM_WORLD_SIZE", "SLURM_JOB_ID", "SLURM_NTASKS", "SLURM_STEP_NUM_TASKS"):
         monkeypatch.delenv(k, raising=False)
     assert not distributed.cluster_detected()
     assert not distributed.initialize(distributed.parse({}))
     assert not distributed.initialize(distributed.parse(
         {"coordinator": "h:1", "num_processes": "1", "process_id": "0"}))
+    # A batch script's own python in a 4-task allocation is one process; srun's tasks are not.
     monkeypatch.setenv("SLURM_JOB_ID", "7")
     monkeypatch.setenv("SLURM_NTASKS", "4")
+    assert not distributed.cluster_detected()
+    monkeypatch.setenv("SLURM_STEP_NUM_TASKS", "4")
+    assert distributed.cluster_detected()
+    monkeypatch.setenv("SLURM_STEP_NUM_TASKS", "1")
+    assert not distributed.cluster_detected()
+    monkeypatch.setenv("OMPI_COMM_WORLD_SIZE", "2")
     assert distributed.cluster_detected()
 
 
