@@ -204,3 +204,25 @@ def test_a_process_zero_policy_save_restores_in_one_process(tmp_path, monkeypatc
     assert jax.tree.structure(back) == jax.tree.structure(policy)
     for a, b in zip(jax.tree.leaves(back), jax.tree.leaves(policy), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+@pytest.mark.slow
+def test_benchmark_script_over_two_processes(tmp_path):
+    """experiments/benchmark.py takes the process flags: its sweeps run over both processes
+    and process 0 alone collects the results and writes the report."""
+    exp = Path(__file__).resolve().parents[1] / "experiments"
+    port = free_port()
+    out, runs = tmp_path / "out", tmp_path / "runs"
+    procs = [subprocess.Popen(
+        [sys.executable, str(exp / "benchmark.py"), "--profile", "tiny", "--algos", "her",
+         "--out", str(out), "--runs-dir", str(runs), "--no-progress",
+         "--coordinator", f"127.0.0.1:{port}", "--num-processes", "2", "--process-id", str(i)],
+        env=env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        for i in range(2)]
+    outs = finish(procs)
+    assert "wrote" in outs[0] and "wrote" not in outs[1]
+    d = out / "benchmark" / "tiny" / "FetchReach" / "her"
+    assert sorted(p.name for p in d.glob("s*.csv")) == ["s0.csv", "s1.csv"]
+    assert (out / "benchmark" / "tiny" / "summary.md").is_file()
+    sweep_dir = runs / "benchmark" / "tiny" / "FetchReach" / "her"
+    assert (sweep_dir / "checkpoints" / "latest-2-processes").is_dir()
