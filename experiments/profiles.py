@@ -103,7 +103,8 @@ PUSH_CPU = Budget(3, {"preset": "fast", "epochs": 200},
                   "preset=fast, 200 epochs of 50 one-episode cycles (500,000 env steps per run)")
 # The moving-goal tasks (experiments/moving_goals.py). FetchReachMoving: the paper's learner,
 # where HER and DHER both reach 1.0 within 10 epochs. FetchPushMoving: preset=fast for 250,000
-# env steps; a setting of 3 seeds is about 1 h 45 min (HER) to 2 h 15 min (DHER) of one core.
+# env steps; a setting of 3 seeds took 1 h 44 min (HER) and 2 h 7 min (DHER, share 0.2) of one
+# core (run_info.json in experiments/results/moving/cpu/).
 REACH_MOVING_CPU = Budget(3, {"epochs": 8, "n_cycles": 10, **PAPER_LEARNER},
                           "the paper's learner; 8 epochs of 10 cycles (8,000 env steps per run)")
 PUSH_MOVING_CPU = Budget(3, {"preset": "fast", "epochs": 100},
