@@ -71,7 +71,11 @@ def check_dir_usable(path: str | Path, what: str) -> None:
     try:
         for d in reversed(missing):
             try:
-                d.mkdir()
+                # parents=True: another process checking a sibling directory at the same time
+                # may have removed a parent this loop created (its own check's cleanup).
+                d.mkdir(parents=True)
+            except FileExistsError:
+                continue  # made by another process meanwhile: not ours to remove
             except OSError as e:
                 raise ConfigError(f"cannot create {what} {path}: {_os_reason(e)}") from None
             created.append(d)

@@ -78,6 +78,25 @@ def test_unusable_dirs_leave_nothing_behind(tmp_path: Path) -> None:
         assert not Path(bad).exists()
 
 
+def test_concurrent_checks_of_sibling_dirs(tmp_path: Path, monkeypatch) -> None:
+    """Two processes checking sweep directories under one new parent: the other's cleanup
+    removes the shared parent between this check's two mkdirs. The check must still pass
+    (it did not: 'cannot create sweep_dir ...: No such file or directory')."""
+    shared, target = tmp_path / "runs", tmp_path / "runs" / "a"
+    real_mkdir, removed = Path.mkdir, []
+
+    def mkdir(self, *args, **kwargs):
+        if self == target and not removed:
+            shared.rmdir()  # the other process's cleanup, just before this mkdir
+            removed.append(shared)
+        return real_mkdir(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "mkdir", mkdir)
+    check_dir_usable(target, "sweep_dir")
+    monkeypatch.undo()
+    assert removed and not target.exists()
+
+
 @pytest.mark.skipif(os.geteuid() == 0, reason="root may write into read-only directories")
 def test_read_only_dirs_are_refused(tmp_path: Path) -> None:
     ro = tmp_path / "ro"
