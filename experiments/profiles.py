@@ -408,8 +408,12 @@ def run_experiment(kind: str, script: str, args: Any, argv: Sequence[str],
         # Every sweep of the experiment runs over all the processes; process 0 collects and
         # writes the results and the report.
         if not args.dry_run:
-            distributed.initialize(distributed.parse(
-                {k: str(v) for k, v in keys.items() if v is not None}))
+            spec = distributed.parse({k: str(v) for k, v in keys.items() if v is not None})
+            if list(argv) == sys.argv[1:]:  # the command line: supervised child per process
+                rc = distributed.supervise(spec)
+                if rc is not None:
+                    return rc
+            distributed.initialize(spec)
         main = distributed.is_main()
         tasks = list(dict.fromkeys(args.tasks or PROFILES[args.profile].default_tasks))
         jobs = make_jobs(kind, args.profile, tasks, args.runs_dir, args.seeds, args.epochs,

@@ -9,13 +9,22 @@ runs on its own devices. Nothing inside an epoch is a collective; between epochs
 exchange one small array (which runs have diverged), which is also what keeps them in step.
 
 On CPU the cross-process collectives use gloo (``jax_cpu_collectives_implementation``).
+
+The runtime ends a process that cannot join (a ``process_id`` given twice, fewer processes than
+``num_processes``) or whose peer died with an abort (``LOG(FATAL)``, exit 134) and a native stack
+trace. So a command-line process that joins a multi-process sweep runs its work in a child
+(:func:`supervise`) and turns such an end into one ``error:`` line: exit 2 when it never joined,
+exit 1 when the sweep it had joined stopped.
 """
 
 from __future__ import annotations
 
 import os
 import re
+import signal
 import socket
+import subprocess
+import sys
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -35,6 +44,10 @@ PROCESS_KEYS: dict[str, str] = {
     "heartbeat_timeout": "multi-process sweep: seconds without a heartbeat after which a process "
                          "counts as dead and the sweep stops (default 100, the runtime's)",
 }
+
+
+# Set in a supervised child: the pipe's write end, on which it reports having joined.
+JOINED_FD_ENV = "RDHER_JAX_JOINED_FD"
 
 
 @dataclass(frozen=True)
@@ -121,10 +134,92 @@ def initialize(spec: ProcessSpec) -> bool:
             heartbeat_timeout_seconds=spec.heartbeat_timeout)
     except Exception as e:  # the runtime raises XlaRuntimeError, ValueError, RuntimeError
         first = (str(e).strip().splitlines() or [type(e).__name__])[0]
-        where = (f" (coordinator {spec.coordinator}, process {spec.process_id} of "
-                 f"{spec.num_processes})" if spec.explicit else "")
-        raise ConfigError(f"could not join the multi-process sweep{where}: {first[:300]}") from None
+        raise ConfigError(f"could not join the multi-process sweep{_where(spec)}: "
+                          f"{first[:300]}") from None
+    _report_joined()
+    if spec.explicit:
+        # The runtime takes process 0's count and lets a process that says otherwise join.
+        counts = [int(c) for c in gather(__import__("numpy").int64(spec.num_processes))]
+        if len(set(counts)) > 1:
+            raise ConfigError(
+                "the processes disagree on num_processes: " + ", ".join(
+                    f"process {i} says {c}" for i, c in enumerate(counts)) +
+                "; start every process with the same num_processes")
     return jax.process_count() > 1
+
+
+def _where(spec: ProcessSpec) -> str:
+    return (f" (coordinator {spec.coordinator}, process {spec.process_id} of "
+            f"{spec.num_processes})" if spec.explicit else "")
+
+
+def _report_joined() -> None:
+    """Tell the supervising parent (if any) that this process joined the runtime."""
+    fd = os.environ.pop(JOINED_FD_ENV, None)
+    if fd is not None:
+        try:
+            os.write(int(fd), b"1")
+            os.close(int(fd))
+        except (OSError, ValueError):
+            pass
+
+
+def wanted(spec: ProcessSpec) -> bool:
+    """Whether :func:`initialize` would join a multi-process runtime."""
+    return (spec.num_processes or 1) > 1 or (not spec.explicit and cluster_detected())
+
+
+def _die_with_parent() -> None:  # runs in the child between fork and exec
+    try:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass  # not Linux: a killed parent leaves its child to the runtime's heartbeat
+
+
+def supervise(spec: ProcessSpec, command: list[str] | None = None) -> int | None:
+    """Run this process's part of a multi-process sweep in a child and return its exit status;
+    None (do the work here) when no multi-process runtime is wanted or this is the child.
+
+    The child is the same command line (``sys.orig_argv`` unless ``command`` is given). When the
+    runtime aborts it, this prints one line and returns 2 (it never joined: a ``process_id``
+    given twice, fewer processes than ``num_processes`` within ``init_timeout``) or 1 (the sweep
+    it had joined stopped, e.g. another process died). SIGINT, SIGTERM and SIGHUP are passed on
+    to the child, and the child dies with this process.
+    """
+    if JOINED_FD_ENV in os.environ or not wanted(spec):
+        return None
+    command = list(command or [sys.executable, *sys.orig_argv[1:]])
+    r, w = os.pipe()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    child = subprocess.Popen(command, env={**os.environ, JOINED_FD_ENV: str(w)}, pass_fds=(w,),
+                             preexec_fn=_die_with_parent, process_group=0)
+    os.close(w)
+    forward = {sig: signal.signal(sig, lambda s, _f: child.send_signal(s))
+               for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+    try:
+        rc = child.wait()
+    finally:
+        for sig, old in forward.items():
+            signal.signal(sig, old)
+    with os.fdopen(r, "rb") as f:
+        joined = f.read(1) == b"1"
+    if rc not in (134, -signal.SIGABRT):
+        return rc if rc >= 0 else 128 - rc
+    sys.stdout.flush()
+    if not joined:
+        print(f"error: could not join the multi-process sweep{_where(spec)}: the runtime "
+              f"stopped this process (a process_id given twice, or fewer processes than "
+              f"num_processes joined within init_timeout={spec.init_timeout} s)",
+              file=sys.stderr)
+        return 2
+    print(f"error: the multi-process sweep stopped{_where(spec)}: another process failed or "
+          f"stopped answering (heartbeat_timeout={spec.heartbeat_timeout} s); start every "
+          "process again with resume=<sweep_dir> to continue from the last checkpoint",
+          file=sys.stderr)
+    return 1
 
 
 def _check_coordinator(spec: ProcessSpec) -> None:

@@ -54,6 +54,7 @@ from .config import (
 from .distributed import PROCESS_KEYS
 from .distributed import initialize as join_processes
 from .distributed import parse as parse_process_keys
+from .distributed import supervise
 from .driver import BASE_CONFIG_FILE, SPEC_FILE, Plan, TrainingDiverged, drive
 from .runlog import check_fresh_dir, check_resume_dir
 from .summary import num
@@ -296,6 +297,12 @@ def sweep(plan: Plan, argv: Sequence[str] | None = None, log=print,
             "local": out["local"]}
 
 
+def _other_keys(argv: Sequence[str]) -> dict[str, str]:
+    _, other = split_args(argv, extra=[k for k in SWEEP_KEYS if k != "grid.<key>"],
+                          prefixes=(GRID,))
+    return other
+
+
 def start_processes(argv: Sequence[str]) -> bool:
     """Join a multi-process sweep when the command line (coordinator=, num_processes=,
     process_id=) or the cluster (SLURM, Open MPI) asks for one; returns whether it did.
@@ -303,8 +310,7 @@ def start_processes(argv: Sequence[str]) -> bool:
     Every process must write into the same directory, so a multi-process sweep names it
     (sweep_dir= or resume=) rather than taking the time-stamped default.
     """
-    _, other = split_args(argv, extra=[k for k in SWEEP_KEYS if k != "grid.<key>"],
-                          prefixes=(GRID,))
+    other = _other_keys(argv)
     multi = join_processes(parse_process_keys(other))
     if multi and "sweep_dir" not in other and "resume" not in other:
         raise ConfigError("a multi-process sweep needs sweep_dir= (or resume=): every process "
@@ -314,8 +320,13 @@ def start_processes(argv: Sequence[str]) -> bool:
 
 @main_guard
 def main(argv: list[str] | None = None) -> int:
+    command_line = argv is None
     argv = list(sys.argv[1:] if argv is None else argv)
     plan = parse_sweep_args(argv)
+    if command_line:  # one of several processes: the work runs in a supervised child
+        rc = supervise(parse_process_keys(_other_keys(argv)))
+        if rc is not None:
+            return rc
     multi = start_processes(argv)
     try:
         out = sweep(plan, argv)

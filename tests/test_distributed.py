@@ -166,14 +166,52 @@ def test_a_killed_process_stops_the_sweep_and_resume_loses_nothing(tmp_path):
         time.sleep(0.2)
     else:
         pytest.fail("the sweep never reached epoch 2")
-    procs[1].send_signal(signal.SIGKILL)
+    procs[1].send_signal(signal.SIGKILL)  # the supervisor: its child dies with it
     out, _ = procs[0].communicate(timeout=300)  # the heartbeat takes the survivor down
-    assert procs[0].returncode != 0, out[-2000:]
+    assert procs[0].returncode == 1, out[-2000:]
+    assert out.strip().splitlines()[-1].startswith(
+        "error: the multi-process sweep stopped (coordinator 127.0.0.1:"), out[-2000:]
     procs[1].wait(timeout=60)
     finish(start([f"resume={d}", "progress=false"]))
     ref = reference(tmp_path, 4)
     for run in RUNS:
         assert rows(d, run) == rows(ref, run), run
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("ids, counts, codes, fragment", [
+    # process_id 1 twice: the runtime aborts the duplicate (never joined) and the two it had
+    # joined; one line each, exit 2 and 1
+    ([0, 1, 1], [2, 2, 2], {2, 1}, None),
+    # num_processes=3 but only two start: neither joins within init_timeout
+    ([0, 1], [3, 3], {2}, "could not join the multi-process sweep (coordinator"),
+    # the processes disagree on num_processes: the runtime lets them join with process 0's
+    ([0, 1], [2, 3], {2}, "the processes disagree on num_processes: process 0 says 2, "
+                          "process 1 says 3"),
+])
+def test_wrong_process_id_or_count_is_a_one_line_error(tmp_path, ids, counts, codes, fragment):
+    port = free_port()
+    procs = []
+    for i, n in zip(ids, counts, strict=True):
+        procs.append(subprocess.Popen(
+            [*SWEEP, *TINY, f"sweep_dir={tmp_path / 's'}", f"coordinator=127.0.0.1:{port}",
+             f"num_processes={n}", f"process_id={i}", "init_timeout=8", "heartbeat_timeout=5"],
+            env=env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
+        time.sleep(1.0)  # process 0 first; the duplicate after the first process 1
+    got = set()
+    for p in procs:
+        _, err = p.communicate(timeout=300)
+        last = err.strip().splitlines()[-1]
+        assert p.returncode in (1, 2) and last.startswith("error: ") and \
+            "Traceback" not in last, err[-3000:]
+        if fragment is not None:
+            assert fragment in last, err[-3000:]
+        if p.returncode == 2:
+            assert "could not join" in last or "disagree" in last, last
+        else:
+            assert "the multi-process sweep stopped" in last, last
+        got.add(p.returncode)
+    assert got == codes
 
 
 def test_a_process_zero_policy_save_restores_in_one_process(tmp_path, monkeypatch):
