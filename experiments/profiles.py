@@ -280,12 +280,45 @@ def _rel(p: Path) -> str:
         return str(p)
 
 
-def collect(job: Job, out_root: Path, command: str, log=print) -> list[Path]:
+# The best policy of each finished run is tested on this many episodes, seeded with
+# EVAL_SEED + the run's seed: root keys that no training run (seeds 0, 1, ...) starts from.
+EVAL_EPISODES = 100
+EVAL_SEED = 1_000_000
+
+
+def best_policy_eval(run_dir: Path, seed: int, episodes: int,
+                     cached: dict[str, Any] | None = None) -> dict[str, Any] | None:
+    """Test success of ``run_dir``'s best-policy checkpoint over ``episodes`` episodes with the
+    evaluation seed of run seed ``seed`` (``rdher_jax.evaluate``); ``cached`` is returned as it
+    is when it was made for the same checkpoint epoch, episodes and seed. None without a
+    best-policy checkpoint."""
+    from rdher_jax.checkpoint import Checkpointer
+    from rdher_jax.evaluate import evaluate
+
+    best = Checkpointer(run_dir, read_only=True).best_epoch()
+    if best is None:
+        return None
+    key = {"epoch": best, "episodes": episodes, "seed": EVAL_SEED + seed}
+    if cached and all(cached.get(k) == v for k, v in key.items()):
+        return cached
+    r = evaluate(run_dir, episodes=episodes, seed=EVAL_SEED + seed)
+    return {**key, "success": r["success"], "train_test_success": r["train_test_success"]}
+
+
+def collect(job: Job, out_root: Path, command: str, log=print,
+            eval_episodes: int = EVAL_EPISODES) -> list[Path]:
     """Copy each run's metrics.csv and a trimmed run_info.json into
     ``<out_root>/<kind>/<profile>/<task>/<setting>/`` (``s<seed>.csv``, ``run_info.json``).
 
+    A run that has finished its epochs (or diverged) also gets its best policy tested on
+    ``eval_episodes`` fresh episodes (:func:`best_policy_eval`; 0: not tested), recorded in
+    run_info.json beside the best 10-episode epoch of its metrics. Only in a one-process run:
+    the checkpoints of a multi-process sweep are tested by ``--collect-only`` afterwards.
+
     Small text files only; checkpoints stay in the sweep directory. Returns the setting dirs.
     """
+    from rdher_jax import distributed
+
     d = job.sweep_dir
     try:
         rows = json.loads((d / "summary.json").read_text(encoding="utf-8"))["runs"]
@@ -301,6 +334,10 @@ def collect(job: Job, out_root: Path, command: str, log=print) -> list[Path]:
         dest.mkdir(parents=True, exist_ok=True)
         runs: dict[str, Any] = {}
         wall = 0.0
+        try:
+            before = json.loads((dest / "run_info.json").read_text(encoding="utf-8"))["runs"]
+        except (OSError, ValueError, KeyError):
+            before = {}
         for r in mine:
             src = d / r["run"] / "metrics.csv"
             if not src.is_file():
@@ -311,10 +348,23 @@ def collect(job: Job, out_root: Path, command: str, log=print) -> list[Path]:
                 continue
             write_text_atomic(dest / f"s{r['seed']}.csv", text)
             wall = max(wall, float(last["wall_time"]))
-            runs[f"s{r['seed']}"] = {"epochs": int(last["epoch"]),
-                                     "env_steps": int(float(last["env_steps"])),
-                                     "status": r["status"],
-                                     "wall_clock_s": float(last["wall_time"])}
+            name = f"s{r['seed']}"
+            runs[name] = {"epochs": int(last["epoch"]),
+                          "env_steps": int(float(last["env_steps"])),
+                          "status": r["status"],
+                          "wall_clock_s": float(last["wall_time"])}
+            done = int(last["epoch"]) >= job.epochs or r["status"] != "ok"
+            cached = before.get(name, {}).get("best_policy")
+            if done and eval_episodes > 0 and distributed.count() == 1:
+                ev = best_policy_eval(d / r["run"], int(r["seed"]), eval_episodes, cached)
+                if ev is not None:
+                    if ev is not cached:
+                        log(f"[{job.task} {s.name} {name}] best policy (epoch {ev['epoch']}) "
+                            f"on {eval_episodes} test episodes: {ev['success']:.3f}")
+                    runs[name]["best_policy"] = ev
+            elif cached is not None and done and \
+                    before.get(name, {}).get("epochs") == runs[name]["epochs"]:
+                runs[name]["best_policy"] = cached  # not tested now; the run has not changed
         for stale in dest.glob("s*.csv"):
             if stale.stem not in runs:
                 stale.unlink()
@@ -378,6 +428,9 @@ def add_common_args(ap: Any) -> None:
                     "the sweeps run in another process) and write the report")
     ap.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                     help="progress bars (default: when stderr is a terminal)")
+    ap.add_argument("--eval-episodes", type=int, default=EVAL_EPISODES, metavar="N",
+                    help="test each finished run's best policy on N episodes with seeds no "
+                    f"training run uses (default {EVAL_EPISODES}; 0: do not)")
     ap.add_argument("--coordinator", default=None, metavar="HOST:PORT",
                     help="multi-process: process 0's coordination address; with "
                     "--num-processes and --process-id, each process started with the same "
@@ -403,6 +456,8 @@ def run_experiment(kind: str, script: str, args: Any, argv: Sequence[str],
             v = getattr(args, name)
             if v is not None and v < 1:
                 raise ConfigError(f"--{name} must be >= 1, got {v}")
+        if args.eval_episodes < 0:
+            raise ConfigError(f"--eval-episodes must be >= 0, got {args.eval_episodes}")
         keys = {"coordinator": args.coordinator, "num_processes": args.num_processes,
                 "process_id": args.process_id}
         # Every sweep of the experiment runs over all the processes; process 0 collects and
@@ -427,7 +482,7 @@ def run_experiment(kind: str, script: str, args: Any, argv: Sequence[str],
                     run_job(job, progress and main, dry_run=args.dry_run,
                             log=print if main else (lambda *a, **k: None))
                 if not args.dry_run and main:
-                    collect(job, args.out, command)
+                    collect(job, args.out, command, eval_episodes=args.eval_episodes)
             if not args.dry_run and main:
                 import report
 

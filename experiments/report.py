@@ -144,7 +144,18 @@ def per_seed(s: SettingData) -> dict[str, dict[int, float]]:
         # The area under the success curve per epoch: learning speed, where best and final
         # both sit at the ceiling (FetchReach).
         "mean": {k: statistics.fmean(v) for k, v in succ.items()},
+        # The best policy tested again on fresh episodes (profiles.best_policy_eval), where the
+        # run has that test: the paper's "best-learned policy", without best-of-epochs luck.
+        "policy": {k: float(ev["success"]) for k in succ
+                   if (ev := s.meta.get("runs", {}).get(f"s{k}", {}).get("best_policy"))},
     }
+
+
+def policy_episodes(s: SettingData) -> int | None:
+    """Episodes of the best-policy test (the same for every run of a setting), or None."""
+    eps = {ev["episodes"] for r in s.meta.get("runs", {}).values()
+           if (ev := r.get("best_policy"))}
+    return eps.pop() if len(eps) == 1 else None
 
 
 def bias(s: SettingData) -> dict[str, Stat]:
@@ -406,18 +417,31 @@ def summary_markdown(kind: str, profile: str, data: Sequence[SettingData]) -> st
     out.append("")
 
     out += ["## Per task: best and final success (%)", ""]
+    tested = any(policy_episodes(s) for s in data)
+    if tested:
+        out += ["Best policy retested: each finished run's best-policy checkpoint (its best "
+                "epoch by the 10-episode test during training) tested again on fresh episodes, "
+                "seeded apart from every training run (`experiments/profiles.py`, "
+                "`best_policy_eval`). Its gap to 'best' is the luck of a best of many "
+                "10-episode tests.", ""]
     head = ["task", "setting", "λ_r / λ_h", "seeds", "epochs", "env steps per run",
-            "best: mean ± std", "best: 95% CI", "final: mean ± std", "final: 95% CI",
-            "over all epochs: mean ± std", "vs HER: final (Welch p)",
-            "vs HER: over all epochs (Welch p)"]
+            "best: mean ± std", "best: 95% CI"]
+    head += ["best policy retested: mean ± std (episodes)"] if tested else []
+    head += ["final: mean ± std", "final: 95% CI",
+             "over all epochs: mean ± std", "vs HER: final (Welch p)",
+             "vs HER: over all epochs (Welch p)"]
     head += ["paper, Table 2"] if bench else ["paper's pick"]
     head.append("status")
     rows = []
     for s in data:
         st = stats[(s.task, s.name)]
         row = [s.task, s.meta.get("label", s.name), lam(s), str(len(s.runs)), epochs_cell(s),
-               env_steps(s), pm(st["best"]), ci(st["best"]), pm(st["final"]), ci(st["final"]),
-               pm(st["mean"])]
+               env_steps(s), pm(st["best"]), ci(st["best"])]
+        if tested:
+            n = policy_episodes(s)
+            row.append("-" if not n else
+                       f"{pm(st['policy'])} ({n}; {len(per_seed(s)['policy'])} seeds)")
+        row += [pm(st["final"]), ci(st["final"]), pm(st["mean"])]
         vs = vs_her(s, data)
         row += ["-", "-"] if vs is None else [vs_cell(*vs["final"]), vs_cell(*vs["mean"])]
         if bench:
@@ -495,7 +519,8 @@ def data_label(name: str, data: Sequence[SettingData]) -> str:
 
 CSV_FIELDS = ("task", "setting", "label", "algo", "lambda_r", "lambda_h", "seeds",
               "epochs_min", "epochs_max", "env_steps", "best_mean", "best_std", "best_ci_lo",
-              "best_ci_hi", "final_mean", "final_std", "final_ci_lo", "final_ci_hi",
+              "best_ci_hi", "best_policy_mean", "best_policy_std", "best_policy_seeds",
+              "best_policy_episodes", "final_mean", "final_std", "final_ci_lo", "final_ci_hi",
               "auc_mean", "auc_std", "final_vs_her", "final_vs_her_p", "auc_vs_her",
               "auc_vs_her_p", "paper_best", "sweep", "sweep_runs", "wall_clock_s",
               "wall_clock_per_run_s",
@@ -517,6 +542,7 @@ def summary_csv(kind: str, data: Sequence[SettingData]) -> str:
     for s in data:
         ps = per_seed(s)
         b, f = stat(list(ps["best"].values())), stat(list(ps["final"].values()))
+        pol = stat(list(ps["policy"].values()))
         a = stat(list(ps["mean"].values()))
         against = vs_her(s, data)
         vs = [math.nan] * 4 if against is None else [*against["final"], *against["mean"]]
@@ -528,7 +554,8 @@ def summary_csv(kind: str, data: Sequence[SettingData]) -> str:
         w.writerow([_c(x) for x in (
             s.task, s.name, s.meta.get("label"), s.meta.get("algo"),
             s.meta.get("lambda_r"), s.meta.get("lambda_h"), len(s.runs), min(done), max(done),
-            steps, b.mean, b.std, b.lo, b.hi, f.mean, f.std, f.lo, f.hi, a.mean, a.std, *vs,
+            steps, b.mean, b.std, b.lo, b.hi, pol.mean, pol.std, len(ps["policy"]),
+            policy_episodes(s), f.mean, f.std, f.lo, f.hi, a.mean, a.std, *vs,
             None if paper is None else paper / 100, sw.get("name"), sw.get("runs"),
             s.meta.get("wall_clock_s"), s.meta.get("wall_clock_per_run_s"),
             *[bi[c].mean for c in BIAS_COLS])])

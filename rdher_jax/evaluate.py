@@ -57,6 +57,27 @@ def parse(argv: list[str]) -> tuple[Path, dict]:
     return run_dir, opts
 
 
+# Keys of a run's config that do not change the evaluation program: the runs of one sweep (seeds,
+# λ pairs) share one build and one compilation (experiments test every run of a sweep).
+_PER_RUN_KEYS = ("seed", "lambda_r", "lambda_h", "epochs", "run_dir", "resume",
+                 "checkpoint_every", "tensorboard", "progress")
+_PROGRAMS: dict[str, tuple] = {}
+
+
+def _program(cfg):
+    """(env, trainer, policy template, jitted evaluate) for ``cfg``, built once per process for
+    configs that differ only in :data:`_PER_RUN_KEYS`."""
+    from .driver import build
+
+    key = repr(dataclasses.replace(cfg, **{k: None for k in _PER_RUN_KEYS}))
+    if key not in _PROGRAMS:
+        env, trainer = build(cfg)
+        template = jax.jit(trainer.ddpg.init)(jax.random.PRNGKey(0), trainer.hparams.ddpg)
+        _PROGRAMS.clear()  # one at a time: a program holds its env's native handles
+        _PROGRAMS[key] = (env, trainer, template, jax.jit(trainer.evaluate))
+    return _PROGRAMS[key]
+
+
 def evaluate(run_dir: Path, episodes: int = 100, seed: int = 0, backend: str | None = None,
              scene: str | None = None, video: str | Path | None = None,
              video_episodes: int = 3, width: int = DEFAULT_SIZE,
@@ -64,7 +85,7 @@ def evaluate(run_dir: Path, episodes: int = 100, seed: int = 0, backend: str | N
     """Test success of the best policy of ``run_dir`` over ``episodes`` episodes; with
     ``video``, also ``video_episodes`` deterministic episodes rendered to that .gif or .mp4
     (raises ``render.RenderError`` if MuJoCo cannot render or the file cannot be written)."""
-    from .driver import build
+    from .program import hparams_from_config
 
     if video is not None:
         video = render.check_video_path(video, width, height)
@@ -74,8 +95,7 @@ def evaluate(run_dir: Path, episodes: int = 100, seed: int = 0, backend: str | N
         cfg = dataclasses.replace(cfg, backend=backend or cfg.backend,
                                   scene=scene or ("auto" if backend else cfg.scene))
     cfg = dataclasses.replace(cfg, n_test_rollouts=episodes)
-    env, trainer = build(cfg)
-    template = jax.jit(trainer.ddpg.init)(jax.random.PRNGKey(0), trainer.hparams.ddpg)
+    env, trainer, template, run_episodes = _program(cfg)
     ckpt = Checkpointer(run_dir, read_only=True)
     if ckpt.best_epoch() is None:
         raise ConfigError(f"{run_dir} has no best-policy checkpoint yet")
@@ -83,7 +103,7 @@ def evaluate(run_dir: Path, episodes: int = 100, seed: int = 0, backend: str | N
     with contextlib.ExitStack() as stack:
         if video is not None:  # a GL context first: an unusable one fails before the episodes
             renderer = stack.enter_context(render.FrameRenderer(env, width, height))
-        success = jax.jit(trainer.evaluate)(jax.random.PRNGKey(seed), policy, trainer.hparams)
+        success = run_episodes(jax.random.PRNGKey(seed), policy, hparams_from_config(cfg))
         out = {"success": float(success), "epoch": epoch, "episodes": episodes,
                "backend": env.backend.name, "scene": env.setup.variant,
                "train_test_success": meta.get("test_success")}

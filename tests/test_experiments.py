@@ -26,6 +26,7 @@ import report  # noqa: E402
 
 ABLATION_SETTINGS = ["her", "rdher_lr1_lh2", "rdher_lr2_lh1", "rdher_lr1_lh4", "rdher_lr4_lh1",
                      "rdher_lr0.5_lh4", "rdher_lr4_lh0.5"]
+EVAL_EPISODES = 4  # the best-policy test of the benchmark's runs (the ablation's: none)
 REPORT_FILES = ["summary.md", "summary.csv", "success_epochs.png", "success_env_steps.png"]
 
 
@@ -39,11 +40,12 @@ def results(tmp_path_factory):
     root = tmp_path_factory.mktemp("experiments")
     out, runs = root / "results", root / "runs"
     common = ["--profile", "tiny", "--out", str(out), "--runs-dir", str(runs), "--no-progress"]
-    assert ablation.main(common) == 0
+    assert ablation.main([*common, "--eval-episodes", "0"]) == 0
     # One epoch, then the same command at the profile's two epochs resumes both sweeps.
-    assert benchmark.main([*common, "--algos", "her", "ddpg", "--epochs", "1"]) == 0
+    bench = [*common, "--eval-episodes", str(EVAL_EPISODES)]
+    assert benchmark.main([*bench, "--algos", "her", "ddpg", "--epochs", "1"]) == 0
     first = {a: read_csv(out / "benchmark/tiny/FetchReach" / a / "s0.csv") for a in ("her", "ddpg")}
-    assert benchmark.main([*common, "--algos", "ddpg", "her"]) == 0
+    assert benchmark.main([*bench, "--algos", "ddpg", "her"]) == 0
     return {"out": out, "runs": runs, "common": common, "first": first}
 
 
@@ -85,6 +87,37 @@ def test_benchmark_resumed_to_the_profile_epochs(results):
         meta = json.loads((d / "run_info.json").read_text())
         assert meta["budget"]["settings"]["epochs"] == 2
         assert meta["sweep"]["runs"] == 2 and meta["seeds"] == [0, 1]
+
+
+def test_best_policy_retested_on_fresh_episodes(results):
+    """Each finished benchmark run's best policy is tested on fresh episodes (seeded apart from
+    training) and the result lands in run_info.json, summary.csv and summary.md."""
+    from rdher_jax.checkpoint import Checkpointer
+    from rdher_jax.evaluate import evaluate
+
+    rows = {r["setting"]: r for r in read_csv(results["out"] / "benchmark/tiny/summary.csv")}
+    for algo in ("her", "ddpg"):
+        meta = json.loads((results["out"] / "benchmark/tiny/FetchReach" / algo
+                           / "run_info.json").read_text())
+        sweep_dir = results["runs"] / "benchmark/tiny/FetchReach" / algo
+        names = {r["seed"]: r["run"] for r in
+                 json.loads((sweep_dir / "summary.json").read_text())["runs"]}
+        got = []
+        for seed in (0, 1):
+            ev = meta["runs"][f"s{seed}"]["best_policy"]
+            run = sweep_dir / names[seed]
+            assert ev["epoch"] == Checkpointer(run, read_only=True).best_epoch()
+            assert ev["episodes"] == EVAL_EPISODES
+            assert ev["seed"] == profiles.EVAL_SEED + seed
+            again = evaluate(run, episodes=EVAL_EPISODES, seed=profiles.EVAL_SEED + seed)
+            assert again["success"] == ev["success"] and again["epoch"] == ev["epoch"]
+            got.append(ev["success"])
+        assert float(rows[algo]["best_policy_mean"]) == pytest.approx(sum(got) / 2, abs=1e-6)
+        assert rows[algo]["best_policy_episodes"] == str(EVAL_EPISODES)
+    abl = json.loads((results["out"] / "ablation/tiny/FetchReach/her/run_info.json").read_text())
+    assert all("best_policy" not in r for r in abl["runs"].values())
+    assert "best policy retested" in (results["out"] / "benchmark/tiny/summary.md").read_text()
+    assert "best policy retested" not in (results["out"] / "ablation/tiny/summary.md").read_text()
 
 
 def test_rerun_skips_finished_sweeps(results, capsys):
