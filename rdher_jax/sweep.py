@@ -51,10 +51,9 @@ from .config import (
     unknown_key,
     validate,
 )
-from .distributed import PROCESS_KEYS
+from .distributed import PROCESS_KEYS, supervise
 from .distributed import initialize as join_processes
 from .distributed import parse as parse_process_keys
-from .distributed import supervise
 from .driver import BASE_CONFIG_FILE, SPEC_FILE, Plan, TrainingDiverged, drive
 from .runlog import check_fresh_dir, check_resume_dir
 from .summary import num
