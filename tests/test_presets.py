@@ -18,6 +18,7 @@ FAST = {
     "target_noise": 0.2,
     "policy_delay": 2,
     "terminal": "exact",
+    "dher_fraction": 0.2,
 }
 
 
