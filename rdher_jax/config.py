@@ -141,6 +141,13 @@ class Config:
         "auto", "physics: auto|mujoco|mjx (auto: mjx when JAX sees a GPU, else mujoco)"
     )
     scene: str = _f("auto", "scene model: auto|original|mjx")
+    overlap: bool = _f(
+        False, "backend=mujoco: collect each cycle's episodes on a second host device while the "
+        "learner trains on the stored ones, so a cycle costs about the larger of its rollout "
+        "and its updates, not their sum. A cycle's updates then see the episodes up to the "
+        "previous cycle (the actor that collects is the current one). Changes the algorithm: "
+        "docs/performance.md, 'Overlap'"
+    )
     hidden: int = _f(256, "units per hidden layer of actor and critic")
     layers: int = _f(3, "hidden layers of actor and critic")
     actor_lr: float = _f(1e-3, "actor Adam learning rate")
@@ -559,6 +566,27 @@ def continue_config(saved: Config, raw: Mapping[str, str], directory: str | Path
         diffs = ", ".join(f"{k}: {getattr(saved, k)!r} -> {getattr(new, k)!r}" for k in changed)
         raise ConfigError(f"cannot change {diffs} when resuming {directory}")
     return new
+
+
+def wants_overlap(argv: Sequence[str]) -> bool:
+    """Whether a command line asks for ``overlap=true``, or resumes a run or sweep that has
+    it: read before JAX starts, which must then be given a second host device. Nothing here
+    raises; the real parse reports bad input."""
+    import yaml
+
+    vals = dict(tok.split("=", 1) for tok in argv if "=" in tok)
+    if vals.get("overlap", "").strip().lower() in ("true", "1", "yes", "on"):
+        return True
+    if not vals.get("resume"):
+        return False
+    for name in ("config.yaml", "base_config.yaml"):
+        try:
+            saved = yaml.safe_load((Path(vals["resume"].strip()) / name).read_text("utf-8"))
+        except (OSError, ValueError, yaml.YAMLError):
+            continue
+        if isinstance(saved, dict) and saved.get("overlap") is True:
+            return True
+    return False
 
 
 def resume_config(cfg: Config, argv: Sequence[str]) -> Config:

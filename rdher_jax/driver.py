@@ -144,6 +144,63 @@ def tree_bytes(tree: Any) -> int:
                    for x in jax.tree.leaves(tree)))
 
 
+def request_host_devices(n: int = 2) -> None:
+    """Ask JAX for ``n`` CPU devices (``overlap=true`` collects on the second). Only possible
+    before JAX starts its backends; :func:`overlap_devices` says later whether it worked."""
+    try:
+        jax.config.update("jax_num_cpu_devices", max(n, jax.config.jax_num_cpu_devices))
+    except (RuntimeError, ValueError, AttributeError):
+        pass  # the backend is up already: overlap_devices() gives the error
+
+
+def overlap_devices(devices: Sequence[Any] | None) -> tuple[list[Any], Any]:
+    """(the learner's device, the collecting device) of an ``overlap=true`` program."""
+    cpus = [d for d in (devices or jax.devices()) if d.platform == "cpu"]
+    if len(cpus) < 2:
+        raise ConfigError(
+            "overlap=true collects on a second host device, and JAX has started with "
+            f"{len(cpus)} CPU device(s); start it with JAX_NUM_CPU_DEVICES=2 (the CLIs do this "
+            "themselves)")
+    if len(cpus) != len(list(devices or jax.devices())):
+        raise ConfigError("overlap=true runs on CPU devices only (backend=mujoco)")
+    return [cpus[0]], cpus[1]
+
+
+class OverlapEpoch:
+    """``program.epoch`` in pieces over two host devices (``overlap=true``).
+
+    Per cycle: the learner (``program.learn``: store the pending episodes, then update; no host
+    callback, so JAX dispatches it and returns at once) is started on the learner's device, and
+    then, in this thread, the next episodes are collected with the same actor on the second
+    device (``program.collect``: the native physics through ``pure_callback``, which runs in
+    the calling thread). The two run at the same time; XLA:CPU runs the independent halves of
+    one program one after the other (experiments/results/bench_overlap.md), and so do two
+    programs on one device. ``lift`` is the run-axis lift of :class:`RunBatch`.
+    """
+
+    def __init__(self, program: Any, lift: Callable, device: Any, collect_device: Any,
+                 n_cycles: int) -> None:
+        self.device, self.collect_device, self.n_cycles = device, collect_device, n_cycles
+        self.learn = jax.jit(lift(program.learn), donate_argnums=0)
+        self.collect = jax.jit(lift(program.collect))
+        self.finish = jax.jit(lift(program.finish), donate_argnums=0)
+        self.set_pending = jax.jit(lambda ts, p: ts.replace(pending=p), donate_argnums=0)
+
+    def __call__(self, ts: Any, hp: Any) -> tuple[Any, Any]:
+        hp_c = jax.device_put(hp, self.collect_device)
+        ms = []
+        for _ in range(self.n_cycles):
+            # What collect reads (actor, normaliser, key), copied before learn takes ts over.
+            view = jax.device_put(ts.replace(buffer=None, relabel=None, pending=None),
+                                  self.collect_device)
+            ts, m = self.learn(ts, hp)
+            pending = self.collect(view, hp_c)
+            ts = self.set_pending(ts, jax.device_put(pending, self.device))
+            ms.append(m)
+        m = jax.tree.map(lambda *xs: jnp.stack(xs, axis=1), *ms)  # (runs, cycles, ...)
+        return self.finish(ts, m, hp)
+
+
 class RunBatch:
     """A program's ``init`` and ``epoch`` over a leading run axis, each one compiled program.
 
@@ -154,7 +211,9 @@ class RunBatch:
     """
 
     def __init__(self, program: Any, n_runs: int, devices: Sequence[Any] | None = None,
-                 vmapped: bool = True) -> None:
+                 vmapped: bool = True, overlap: Any = None) -> None:
+        """``overlap``: (n_cycles, the collecting device) for an ``overlap=true`` program on
+        one device (:class:`OverlapEpoch`)."""
         self.devices = list(devices or jax.devices())[: n_runs if not vmapped else None]
         if not vmapped and n_runs != 1:
             raise ValueError("an unvmapped program runs exactly one run")
@@ -172,7 +231,12 @@ class RunBatch:
             lift = jax.vmap if vmapped else _one_run
             self.init = jax.jit(lift(program.init))
             self.epoch = jax.jit(lift(program.epoch), donate_argnums=0)
+            if overlap is not None:
+                self.epoch = OverlapEpoch(program, lift, self.devices[0], overlap[1],
+                                          overlap[0])
             return
+        if overlap is not None:
+            raise ValueError("an overlap=true program runs on one learner device")
         from jax.sharding import Mesh, NamedSharding
         from jax.sharding import PartitionSpec as P
 
@@ -282,6 +346,10 @@ def batch_for(runs: Sequence[Config], devices: Sequence[Any] | None = None,
     runs is in each run's hyperparameters and key. The last program is kept for the life of the
     process, so a sweep resumed in the same process (a notebook, a test) reuses its compilation.
     """
+    overlap = None
+    if runs[0].overlap:
+        devices, collect_device = overlap_devices(devices)
+        overlap = (runs[0].n_cycles, collect_device)
     devices = list(devices or jax.devices())
     default = Config()
     shared = dataclasses.replace(
@@ -298,8 +366,11 @@ def batch_for(runs: Sequence[Config], devices: Sequence[Any] | None = None,
     if _LAST_PROGRAM.get("key") != key:
         _LAST_PROGRAM.clear()  # one at a time: a program holds its env and compiled code
         env, program = build(runs[0])
-        _LAST_PROGRAM.update(key=key, value=(env, program,
-                                             RunBatch(program, len(runs), devices, vmapped)))
+        if overlap is not None and env.backend.name != "mujoco":
+            raise ConfigError(f"overlap=true needs backend=mujoco (the native physics), not "
+                              f"{env.backend.name}")
+        _LAST_PROGRAM.update(key=key, value=(env, program, RunBatch(
+            program, len(runs), devices, vmapped, overlap)))
     return _LAST_PROGRAM["value"]
 
 
@@ -528,6 +599,8 @@ def drive(plan: Plan, argv: Sequence[str] = (), prog: str = "", log=print,
     if procs > 1 and not plan.sweep:
         raise ConfigError("a run of its own is one process; start a multi-process sweep with "
                           "python -m rdher_jax.sweep")
+    if procs > 1 and cfg.overlap:
+        raise ConfigError("overlap=true runs in one process (two host devices of one machine)")
     if main:
         check_out_dir(plan)
     if plan.sweep and plan.resume:

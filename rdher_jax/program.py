@@ -7,6 +7,9 @@
 - ``epoch(ts, hparams) -> (ts, EpochMetrics)``: ``lax.scan`` over ``n_cycles`` cycles, then
   ``n_test_rollouts`` deterministic test episodes. This is what the CLI jits once and calls per
   epoch; a sweep vmaps it over seeds and hyperparameters.
+- ``collect``, ``learn``, ``finish``: the same cycle and epoch end in pieces, for
+  ``overlap=true``, where the driver runs the next cycle's rollout on a second host device while
+  the learner trains (``driver.OverlapEpoch``).
 
 Everything a user may sweep is in ``Hyper`` (``ddpg.DDPGParams`` and ``relabel.RelabelParams``,
 arrays, traced); everything that fixes a shape is in the frozen ``config.Config``. How goals are
@@ -47,6 +50,17 @@ class TrainState:
     env_steps: jax.Array  # int32, total over all parallel envs
     updates: jax.Array  # int32 gradient steps
     epoch: jax.Array  # int32 completed epochs
+    # overlap=true only: the episodes collected while the last cycle's learner ran, stored by
+    # the next cycle (None, an empty subtree, otherwise).
+    pending: Pending | None = None
+
+
+@struct.dataclass
+class Pending:
+    """Episodes collected and not yet stored, with each one's final-step success."""
+
+    episode: rb.Episode
+    success: jax.Array
 
 
 @struct.dataclass
@@ -80,6 +94,13 @@ class Program(NamedTuple):
     hparams: Any
     ddpg: Any
     relabeller: Any
+    # The halves of a cycle, for running them at the same time on two devices (overlap=true,
+    # driver.OverlapEpoch): collect(ts, hp) -> Pending, the episodes of the cycle's rollout key
+    # with the current actor; learn(ts, hp) -> (ts, metrics), the cycle with ts.pending as its
+    # episodes; finish(ts, stacked cycle metrics, hp) -> (ts, EpochMetrics), the epoch's end.
+    collect: Any = None
+    learn: Any = None
+    finish: Any = None
 
 
 def hparams_from_config(cfg) -> Hyper:
@@ -159,9 +180,26 @@ def make_program(cfg, env) -> Program:
         one_hot = (b.source[:, None] == jnp.arange(len(SOURCE_NAMES))[None, :]).astype(q.dtype)
         return {"w": (q - lam * ret) @ one_hot, "u": (q - ret) @ one_hot, "n": one_hot.sum(0)}
 
+    def collect(ts: TrainState, hp: Hyper) -> Pending:
+        """The episodes ``cycle(ts, hp)`` would collect: its rollout key, ts's actor."""
+        k_roll = jax.random.split(ts.key, 5)[1]
+        ep, success = rollout(k_roll, ts.ddpg, hp.ddpg, n_envs, explore=True)
+        return Pending(ep, success)
+
     def cycle(ts: TrainState, hp: Hyper):
         key, k_roll, k_norm, k_upd, k_bias = jax.random.split(ts.key, 5)
         ep, success = rollout(k_roll, ts.ddpg, hp.ddpg, n_envs, explore=True)
+        return _learn(ts, hp, ep, success, key, k_norm, k_upd, k_bias)
+
+    def learn(ts: TrainState, hp: Hyper):
+        """A cycle whose episodes are ``ts.pending`` (collected beside the previous cycle)."""
+        key, _, k_norm, k_upd, k_bias = jax.random.split(ts.key, 5)
+        ts, m = _learn(ts, hp, ts.pending.episode, ts.pending.success, key, k_norm, k_upd,
+                       k_bias)
+        return ts, m
+
+    def _learn(ts: TrainState, hp: Hyper, ep: rb.Episode, success: jax.Array, key, k_norm,
+               k_upd, k_bias):
         buf = rb.add(ts.buffer, ep)
         rs = relabeller.update(ts.relabel, buf, hp.relabel)
         # Normaliser: statistics of 'future'-relabelled transitions of the new episodes
@@ -212,6 +250,10 @@ def make_program(cfg, env) -> Program:
 
     def epoch(ts: TrainState, hp: Hyper):
         ts, m = jax.lax.scan(lambda s, _: cycle(s, hp), ts, None, length=cfg.n_cycles)
+        return finish(ts, m, hp)
+
+    def finish(ts: TrainState, m, hp: Hyper):
+        """The end of an epoch: test episodes and the metrics of its cycles (``m``, stacked)."""
         key, k_test = jax.random.split(ts.key)
         test = evaluate(k_test, ts.ddpg, hp)
         ts = ts.replace(key=key, epoch=ts.epoch + 1)
@@ -234,5 +276,15 @@ def make_program(cfg, env) -> Program:
             **mean,
         )
 
-    return Program(init=init, cycle=cycle, epoch=epoch, evaluate=evaluate,
-                   hparams=hparams_from_config(cfg), ddpg=agent, relabeller=relabeller)
+    def init_overlap(key, hp: Hyper) -> TrainState:
+        """``init``, then the episodes the first cycle stores: collected by the initial actor
+        with a key of their own (so from then on every cycle's rollout key is the one it has
+        without overlap)."""
+        ts = init(key, hp)
+        k_first = jax.random.fold_in(ts.key, 0x0E1A)  # 'overlap' warm-up: no other use
+        ep, success = rollout(k_first, ts.ddpg, hp.ddpg, n_envs, explore=True)
+        return ts.replace(pending=Pending(ep, success))
+
+    return Program(init=init_overlap if cfg.overlap else init, cycle=cycle, epoch=epoch,
+                   evaluate=evaluate, hparams=hparams_from_config(cfg), ddpg=agent,
+                   relabeller=relabeller, collect=collect, learn=learn, finish=finish)

@@ -50,11 +50,19 @@ from .config import (
     split_args,
     unknown_key,
     validate,
+    wants_overlap,
 )
 from .distributed import PROCESS_KEYS, supervise
 from .distributed import initialize as join_processes
 from .distributed import parse as parse_process_keys
-from .driver import BASE_CONFIG_FILE, SPEC_FILE, Plan, TrainingDiverged, drive
+from .driver import (
+    BASE_CONFIG_FILE,
+    SPEC_FILE,
+    Plan,
+    TrainingDiverged,
+    drive,
+    request_host_devices,
+)
 from .runlog import check_fresh_dir, check_resume_dir
 from .summary import num
 
@@ -321,6 +329,8 @@ def start_processes(argv: Sequence[str]) -> bool:
 def main(argv: list[str] | None = None) -> int:
     command_line = argv is None
     argv = list(sys.argv[1:] if argv is None else argv)
+    if wants_overlap(argv):  # before anything starts JAX's backend
+        request_host_devices(2)
     plan = parse_sweep_args(argv)
     if command_line:  # one of several processes: the work runs in a supervised child
         rc = supervise(parse_process_keys(_other_keys(argv)))

@@ -17,8 +17,9 @@ from .config import (
     parse_args,
     resolve,
     resume_config,
+    wants_overlap,
 )
-from .driver import Plan, TrainingDiverged, drive
+from .driver import Plan, TrainingDiverged, drive, request_host_devices
 from .runlog import check_resume_dir
 
 PROG = "python -m rdher_jax.train"
@@ -47,6 +48,8 @@ def load_resume_config(cfg: Config, argv: Sequence[str]) -> Config:
 @main_guard
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    if wants_overlap(argv):  # before anything starts JAX's backend
+        request_host_devices(2)
     cfg = parse_args(argv, prog=PROG)
     cfg = load_resume_config(cfg, argv) if cfg.resume is not None else resolve(cfg)
     try:
