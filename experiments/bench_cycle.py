@@ -2,6 +2,7 @@
 
     python experiments/bench_cycle.py                       # FetchPush, default vs preset=fast
     python experiments/bench_cycle.py --env FetchPush --repeats 30
+    python experiments/bench_cycle.py --overlap-cycles 0        # without the overlap rows
 
 A cycle is a rollout of ``num_envs`` episodes (host physics through one callback per step),
 ``n_batches`` sampled gradient steps and the target update. Timing the jitted cycle at the
@@ -13,6 +14,11 @@ speed drifts. Writes ``experiments/results/bench_cycle.md`` and ``.json``.
 """
 
 from __future__ import annotations
+
+import os
+
+# A second host device, for the overlap=true rows (the others run on the first only).
+os.environ.setdefault("JAX_NUM_CPU_DEVICES", "2")
 
 import argparse
 import json
@@ -44,6 +50,22 @@ def cycle_fn(settings: list[str]):
     return cfg, cycle, ts, hp
 
 
+def epoch_fn(settings: list[str], n_cycles: int):
+    """A single run's epoch (``n_cycles`` cycles, one test episode) as the trainer runs it,
+    compiled and warmed up: the jitted epoch, or driver.OverlapEpoch with overlap=true."""
+    from rdher_jax.program import hparams_from_config
+
+    cfg = resolve(parse_args([*settings, f"n_cycles={n_cycles}", "n_test_rollouts=1",
+                              "run_dir=/tmp/bench_cycle_unused", "progress=false"]))
+    _, _, batch = driver.batch_for([cfg], vmapped=False)
+    hp = batch.put(jax.tree.map(lambda x: x[None], hparams_from_config(cfg)))
+    ts = batch.init(batch.put(jax.random.PRNGKey(0)[None]), hp)
+    for _ in range(2):
+        ts, m = batch.epoch(ts, hp)
+    jax.block_until_ready((ts, m))
+    return cfg, batch.epoch, ts, hp
+
+
 def time_once(fns: dict, k) -> float:
     cycle, ts, hp = fns[k]
     t0 = time.perf_counter()
@@ -58,6 +80,8 @@ def main() -> None:
     ap.add_argument("--env", default="FetchPush")
     ap.add_argument("--preset", default="fast")
     ap.add_argument("--repeats", type=int, default=20)
+    ap.add_argument("--overlap-cycles", type=int, default=10,
+                    help="cycles per timed epoch for the overlap rows (0: skip them)")
     ap.add_argument("--out", default=str(HERE / "results" / "bench_cycle.md"))
     args = ap.parse_args()
 
@@ -70,6 +94,11 @@ def main() -> None:
         fns[(name, "full")] = (cycle, ts, hp)
         _, cycle1, ts1, hp1 = cycle_fn([*settings, "n_batches=1"])
         fns[(name, "one")] = (cycle1, ts1, hp1)
+    if args.overlap_cycles:
+        for name, settings in setups.items():
+            for ov in ("false", "true"):
+                _, ep, ts, hp = epoch_fn([*settings, f"overlap={ov}"], args.overlap_cycles)
+                fns[(name, f"epoch-overlap-{ov}")] = (ep, ts, hp)
     times: dict = {k: [] for k in fns}
     for _ in range(args.repeats):
         for k in fns:
@@ -104,6 +133,27 @@ def main() -> None:
             f"| {r['setting']} | {r['num_envs']} x 50 | {r['n_batches']} | {r['cycle_ms']:.0f} | "
             f"{r['rollout_ms']:.0f} ({100 * r['rollout_share']:.0f}%) | {r['update_ms']:.2f} | "
             f"{r['env_steps_per_s']:.0f} | {r['updates_per_s']:.0f} |")
+    if args.overlap_cycles:
+        lines += [
+            "",
+            f"**Overlap** (`overlap=true`): an epoch of {args.overlap_cycles} cycles and one test "
+            "episode as the trainer runs it, per cycle, sequential against overlapped (the "
+            "rollout on a second host device while the learner trains; "
+            "`rdher_jax.driver.OverlapEpoch`), timed in the same interleaved rounds.",
+            "",
+            "| setting | sequential ms / cycle | overlap ms / cycle | speed-up | "
+            "bound: max(rollout, updates) ms |",
+            "|---|---|---|---|---|",
+        ]
+        for r in rows:
+            name = r["setting"]
+            seq = statistics.median(times[(name, "epoch-overlap-false")]) / args.overlap_cycles
+            ovl = statistics.median(times[(name, "epoch-overlap-true")]) / args.overlap_cycles
+            bound = max(r["rollout_ms"], r["cycle_ms"] - r["rollout_ms"])
+            r.update(overlap_cycles=args.overlap_cycles, seq_epoch_cycle_ms=1e3 * seq,
+                     overlap_epoch_cycle_ms=1e3 * ovl)
+            lines.append(f"| {name} | {1e3 * seq:.0f} | {1e3 * ovl:.0f} | {seq / ovl:.2f}x | "
+                         f"{bound:.0f} |")
     text = "\n".join(lines) + "\n"
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

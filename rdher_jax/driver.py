@@ -175,18 +175,29 @@ class OverlapEpoch:
     device (``program.collect``: the native physics through ``pure_callback``, which runs in
     the calling thread). The two run at the same time; XLA:CPU runs the independent halves of
     one program one after the other (experiments/results/bench_overlap.md), and so do two
-    programs on one device. ``lift`` is the run-axis lift of :class:`RunBatch`.
+    programs on one device. ``vmapped``: the state has a run axis of any length (a sweep), or
+    of length 1 (one run, :class:`RunBatch` with ``vmapped=False``).
     """
 
-    def __init__(self, program: Any, lift: Callable, device: Any, collect_device: Any,
+    def __init__(self, program: Any, vmapped: bool, device: Any, collect_device: Any,
                  n_cycles: int) -> None:
         self.device, self.collect_device, self.n_cycles = device, collect_device, n_cycles
+        self.vmapped = vmapped
+        # One run: the run axis is taken off for the whole epoch (a reshape, free with
+        # donation), not per cycle, where lifting each call would copy the replay buffer.
+        lift = jax.vmap if vmapped else (lambda f: f)
         self.learn = jax.jit(lift(program.learn), donate_argnums=0)
         self.collect = jax.jit(lift(program.collect))
         self.finish = jax.jit(lift(program.finish), donate_argnums=0)
         self.set_pending = jax.jit(lambda ts, p: ts.replace(pending=p), donate_argnums=0)
+        self.drop_axis = jax.jit(lambda t: jax.tree.map(lambda x: x.reshape(x.shape[1:]), t),
+                                 donate_argnums=0)
+        self.add_axis = jax.jit(lambda t: jax.tree.map(lambda x: x.reshape((1, *x.shape)), t),
+                                donate_argnums=0)
 
     def __call__(self, ts: Any, hp: Any) -> tuple[Any, Any]:
+        if not self.vmapped:
+            ts, hp = self.drop_axis(ts), jax.tree.map(lambda x: x[0], hp)
         hp_c = jax.device_put(hp, self.collect_device)
         ms = []
         for _ in range(self.n_cycles):
@@ -197,8 +208,12 @@ class OverlapEpoch:
             pending = self.collect(view, hp_c)
             ts = self.set_pending(ts, jax.device_put(pending, self.device))
             ms.append(m)
-        m = jax.tree.map(lambda *xs: jnp.stack(xs, axis=1), *ms)  # (runs, cycles, ...)
-        return self.finish(ts, m, hp)
+        axis = 1 if self.vmapped else 0  # (runs, cycles, ...) or (cycles, ...)
+        m = jax.tree.map(lambda *xs: jnp.stack(xs, axis=axis), *ms)
+        ts, metrics = self.finish(ts, m, hp)
+        if not self.vmapped:
+            ts, metrics = self.add_axis((ts, metrics))
+        return ts, metrics
 
 
 class RunBatch:
@@ -232,7 +247,7 @@ class RunBatch:
             self.init = jax.jit(lift(program.init))
             self.epoch = jax.jit(lift(program.epoch), donate_argnums=0)
             if overlap is not None:
-                self.epoch = OverlapEpoch(program, lift, self.devices[0], overlap[1],
+                self.epoch = OverlapEpoch(program, vmapped, self.devices[0], overlap[1],
                                           overlap[0])
             return
         if overlap is not None:
