@@ -246,7 +246,7 @@ def windows(s: SettingData) -> list[tuple[str, Stat]]:
 
 
 def _k(n: float) -> str:
-    return f"{n / 1000:.0f}k" if n >= 1000 else f"{n:.0f}"
+    return f"{n / 1000:.3g}k" if n >= 1000 else f"{n:.0f}"
 
 
 def hms(seconds: float | None) -> str:
@@ -462,19 +462,22 @@ def summary_markdown(kind: str, profile: str, data: Sequence[SettingData]) -> st
                 "mean ± std over seeds. Combined rows: the share of each batch that DHER "
                 f"combined, per seed the mean over its last {LAST} epochs (the cap is "
                 "dher_fraction·(1 − success rate of the last 100 episodes)).", ""]
-        head, rows = None, []
-        for s in data:
-            ws = windows(s)
-            head = head or ["task", "setting", "seeds", *[w for w, _ in ws], "best",
-                            "final", "combined rows"]
-            share = [statistics.fmean(v[-LAST:]) for v in s.column("frac_dher").values()
-                     if v and all(math.isfinite(x) for x in v[-LAST:])]
-            rows.append([s.task, s.meta.get("label", s.name), str(len(s.runs)),
-                         *[pm(st) for _, st in ws], pm(stats[(s.task, s.name)]["best"]),
-                         pm(stats[(s.task, s.name)]["final"]),
-                         "-" if s.meta.get("algo") not in ("dher", "rdher") else pm(stat(share))])
-        out += _md_table(head or [], rows)
-        out.append("")
+        # One table per task: the windows are fractions of each task's own budget.
+        for ss in tasks.values():
+            head, rows = None, []
+            for s in ss:
+                ws = windows(s)
+                head = head or ["task", "setting", "seeds", *[w for w, _ in ws], "best",
+                                "final", "combined rows"]
+                share = [statistics.fmean(v[-LAST:]) for v in s.column("frac_dher").values()
+                         if v and all(math.isfinite(x) for x in v[-LAST:])]
+                rows.append([s.task, s.meta.get("label", s.name), str(len(s.runs)),
+                             *[pm(st) for _, st in ws], pm(stats[(s.task, s.name)]["best"]),
+                             pm(stats[(s.task, s.name)]["final"]),
+                             "-" if s.meta.get("algo") not in ("dher", "rdher")
+                             else pm(stat(share))])
+            out += _md_table(head or [], rows)
+            out.append("")
 
     out += ["## Wall clock", "",
             "Per sweep: its runs are one vmapped program and share its wall clock (from the "
