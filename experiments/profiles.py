@@ -125,7 +125,8 @@ PROFILES: dict[str, Profile] = {
                     "FetchReachMoving": REACH_MOVING_CPU, "FetchPushMoving": PUSH_MOVING_CPU},
                    ("FetchReach",)),
     "paper": Profile(
-        "the paper's budget for a GPU: Table 1's settings, 50 epochs (Reach 10 cycles each, "
+        "the paper's budget, which a CPU can run (one FetchPush run: 12-15 min of one core "
+        "here): Table 1's settings, 50 epochs (Reach 10 cycles each, "
         "others 50), 5 seeds, every task",
         {**{t: Budget(5, {"epochs": 50, "n_cycles": TASK_TABLE[t].n_cycles, **PAPER_LEARNER},
                       "the paper's settings (epochs: see profiles.py)")
