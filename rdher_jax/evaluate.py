@@ -85,11 +85,10 @@ def evaluate(run_dir: Path, episodes: int = 100, seed: int = 0, backend: str | N
     """Test success of the best policy of ``run_dir`` over ``episodes`` episodes; with
     ``video``, also ``video_episodes`` deterministic episodes rendered to that .gif or .mp4
     (raises ``render.RenderError`` if MuJoCo cannot render or the file cannot be written)."""
-    from .program import hparams_from_config
-
     if video is not None:
         video = render.check_video_path(video, width, height)
-        gl = render.select_gl()  # before build() imports mujoco
+        gl = render.select_gl()  # before anything imports mujoco
+    from .program import hparams_from_config
     cfg = from_yaml(run_dir / "config.yaml")
     if backend is not None or scene is not None:
         cfg = dataclasses.replace(cfg, backend=backend or cfg.backend,
