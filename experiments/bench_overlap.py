@@ -89,7 +89,7 @@ def make_learner(n_batches: int, batch: int = 256, hidden: int = 256, obs: int =
     return init, learn
 
 
-def median_time(fn, repeats: int) -> list[float]:
+def call_times(fn, repeats: int) -> list[float]:
     out = []
     for _ in range(repeats):
         t0 = time.perf_counter()
@@ -135,7 +135,7 @@ def main() -> None:
     times: dict[str, list[float]] = {k: [] for k in cases}
     for _ in range(args.repeats):  # interleaved
         for name, fn in cases.items():
-            times[name] += median_time(fn, 1)
+            times[name] += call_times(fn, 1)
     med = {k: statistics.median(v) for k, v in times.items()}
     slower = max(med["rollout alone"], med["learner alone"])
     total = med["rollout alone"] + med["learner alone"]

@@ -139,7 +139,9 @@ def initialize(spec: ProcessSpec) -> bool:
     _report_joined()
     if spec.explicit:
         # The runtime takes process 0's count and lets a process that says otherwise join.
-        counts = [int(c) for c in gather(__import__("numpy").int64(spec.num_processes))]
+        import numpy as np
+
+        counts = [int(c) for c in gather(np.int64(spec.num_processes))]
         if len(set(counts)) > 1:
             raise ConfigError(
                 "the processes disagree on num_processes: " + ", ".join(

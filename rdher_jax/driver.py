@@ -155,15 +155,15 @@ def request_host_devices(n: int = 2) -> None:
 
 def overlap_devices(devices: Sequence[Any] | None) -> tuple[list[Any], Any]:
     """(the learner's device, the collecting device) of an ``overlap=true`` program."""
-    cpus = [d for d in (devices or jax.devices()) if d.platform == "cpu"]
-    if len(cpus) < 2:
+    devices = list(devices or jax.devices())
+    if any(d.platform != "cpu" for d in devices):
+        raise ConfigError("overlap=true runs on CPU devices only (backend=mujoco)")
+    if len(devices) < 2:
         raise ConfigError(
             "overlap=true collects on a second host device, and JAX has started with "
-            f"{len(cpus)} CPU device(s); start it with JAX_NUM_CPU_DEVICES=2 (the CLIs do this "
-            "themselves)")
-    if len(cpus) != len(list(devices or jax.devices())):
-        raise ConfigError("overlap=true runs on CPU devices only (backend=mujoco)")
-    return [cpus[0]], cpus[1]
+            f"{len(devices)} CPU device(s); start it with JAX_NUM_CPU_DEVICES=2 (the CLIs do "
+            "this themselves)")
+    return [devices[0]], devices[1]
 
 
 class OverlapEpoch:
@@ -245,8 +245,9 @@ class RunBatch:
             self.sharding = jax.sharding.SingleDeviceSharding(self.devices[0])
             lift = jax.vmap if vmapped else _one_run
             self.init = jax.jit(lift(program.init))
-            self.epoch = jax.jit(lift(program.epoch), donate_argnums=0)
-            if overlap is not None:
+            if overlap is None:
+                self.epoch = jax.jit(lift(program.epoch), donate_argnums=0)
+            else:
                 self.epoch = OverlapEpoch(program, vmapped, self.devices[0], overlap[1],
                                           overlap[0])
             return

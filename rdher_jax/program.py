@@ -194,9 +194,8 @@ def make_program(cfg, env) -> Program:
     def learn(ts: TrainState, hp: Hyper):
         """A cycle whose episodes are ``ts.pending`` (collected beside the previous cycle)."""
         key, _, k_norm, k_upd, k_bias = jax.random.split(ts.key, 5)
-        ts, m = _learn(ts, hp, ts.pending.episode, ts.pending.success, key, k_norm, k_upd,
-                       k_bias)
-        return ts, m
+        return _learn(ts, hp, ts.pending.episode, ts.pending.success, key, k_norm, k_upd,
+                      k_bias)
 
     def _learn(ts: TrainState, hp: Hyper, ep: rb.Episode, success: jax.Array, key, k_norm,
                k_upd, k_bias):
