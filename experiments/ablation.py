@@ -27,6 +27,8 @@ one (``--epochs N`` extends finished ones).
     python experiments/ablation.py --profile tiny                      # smoke test, ~1 min
     python experiments/ablation.py --profile cpu                       # FetchReach, 5 seeds
     python experiments/ablation.py --profile paper --tasks FetchPush   # on a GPU
+    python experiments/ablation.py --profile paper --tasks FetchPush --seeds 3 --split \
+        --settings her rdher_lr4_lh0.5                                 # on a CPU, in pieces
 """
 
 from __future__ import annotations
@@ -43,13 +45,26 @@ def setting_name(lr: float, lh: float) -> str:
     return f"rdher_lr{num(lr)}_lh{num(lh)}"
 
 
-def sweeps(task: str) -> list[tuple[str, str, object, tuple[Setting, ...]]]:
-    """(sweep name, algo, lambdas, settings) of one task's ablation."""
+SETTING_NAMES: tuple[str, ...] = ("her", *(setting_name(lr, lh) for lr, lh in ABLATION_PAIRS))
+
+
+Sweep = tuple[str, str, object, tuple[Setting, ...]]
+
+
+def sweeps(task: str, split: bool = False, only: tuple[str, ...] | None = None) -> list[Sweep]:
+    """(sweep name, algo, lambdas, settings) of one task's ablation. ``split``: one sweep per
+    pair, named by its setting, in place of one sweep of all six; ``only``: these settings
+    (of :data:`SETTING_NAMES`) alone, in the order given."""
     weighted = tuple(Setting(setting_name(lr, lh), f"RDHER λ_r={num(lr)}, λ_h={num(lh)}",
                              "rdher", (lr, lh), i + 1)
                      for i, (lr, lh) in enumerate(ABLATION_PAIRS))
-    her = (Setting("her", "vanilla HER", "her", None, 0),)
-    return [("rdher", "rdher", ABLATION_PAIRS, weighted), ("her", "her", None, her)]
+    her = ("her", "her", None, (Setting("her", "vanilla HER", "her", None, 0),))
+    if split:
+        every = {s.name: (s.name, "rdher", (s.lambdas,), (s,)) for s in weighted}
+        every["her"] = her
+        return [every[n] for n in (only or SETTING_NAMES)]
+    out = [("rdher", "rdher", ABLATION_PAIRS, weighted), her]
+    return out if only is None else [j for j in out if j[0] in only]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -58,8 +73,22 @@ def main(argv: list[str] | None = None) -> int:
         prog="python experiments/ablation.py", description=__doc__.split("\n\n")[0],
         epilog="Vanilla HER is a separate algo=her sweep; see the module docstring.")
     add_common_args(ap)
+    ap.add_argument("--split", action="store_true",
+                    help="one sweep per weighted pair (named by its setting) in place of one "
+                    "vmapped sweep of all six: on a CPU, where vmapping saves nothing "
+                    "(experiments/results/bench_sweep.md), each finishes in a sitting")
+    ap.add_argument("--settings", nargs="+", choices=SETTING_NAMES, default=None,
+                    metavar="SETTING",
+                    help=f"run only these settings, of {', '.join(SETTING_NAMES)} (a weighted "
+                    "one needs --split); default: all seven")
     args = ap.parse_args(argv)
-    return run_experiment(KIND, "ablation.py", args, argv, sweeps)
+    only = None if args.settings is None else tuple(dict.fromkeys(args.settings))
+    if only is not None and not args.split and any(n != "her" for n in only):
+        print("error: --settings with a weighted setting needs --split (without it the six "
+              "pairs are one sweep)", file=sys.stderr)
+        return 2
+    return run_experiment(KIND, "ablation.py", args, argv,
+                          lambda task: sweeps(task, args.split, only))
 
 
 if __name__ == "__main__":

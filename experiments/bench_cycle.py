@@ -3,12 +3,17 @@
     python experiments/bench_cycle.py                       # FetchPush, default vs preset=fast
     python experiments/bench_cycle.py --env FetchPush --repeats 30
     python experiments/bench_cycle.py --overlap-cycles 0        # without the overlap rows
+    python experiments/bench_cycle.py --variants fast+bf16:preset=fast,compute_dtype=bfloat16
 
 A cycle is a rollout of ``num_envs`` episodes (host physics through one callback per step),
 ``n_batches`` sampled gradient steps and the target update. Timing the jitted cycle at the
 setting's ``n_batches`` and at ``n_batches=1`` separates the two: the one-batch cycle is almost
 all rollout (and store), and the difference divided by ``n_batches - 1`` is one sampled update.
 The rollout's share is what overlapping host physics with the learner could save at most.
+Beside them, a plain XLA learner of the same widths (an actor and a critic MLP on random
+batches: the critic's TD loss, the actor through the critic, two Adam steps, the target
+average; no replay, sampling or relabelling) times the update's arithmetic alone, the ceiling
+the trainer's update is read against.
 Settings are timed interleaved (A, B, A, B, ...) and medians reported, since this machine's
 speed drifts. Writes ``experiments/results/bench_cycle.md`` and ``.json``.
 """
@@ -28,6 +33,8 @@ import time
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
+import optax
 
 from rdher_jax import driver
 from rdher_jax.config import parse_args, resolve
@@ -66,6 +73,63 @@ def epoch_fn(settings: list[str], n_cycles: int):
     return cfg, batch.epoch, ts, hp
 
 
+def plain_learner(n_batches: int, hidden: int, layers: int, dtype=None,
+                  obs: int = 25, goal: int = 3, act: int = 4, batch: int = 256):
+    """``n_batches`` plain DDPG updates in one scan (see the module doc), jitted, and its
+    state."""
+    opt = optax.adam(1e-3)
+
+    def mlp_init(key, sizes):
+        keys = jax.random.split(key, len(sizes) - 1)
+        return [(jax.random.normal(k, (a, b)) / jnp.sqrt(a), jnp.zeros(b))
+                for k, a, b in zip(keys, sizes[:-1], sizes[1:], strict=True)]
+
+    def mlp(params, x):
+        for i, (w, b) in enumerate(params):
+            last = i == len(params) - 1
+            cd = jnp.float32 if (last or dtype is None) else dtype
+            x = jnp.dot(x.astype(cd), w.astype(cd)).astype(jnp.float32) + b
+            x = x if last else jax.nn.relu(x)
+        return x
+
+    widths = [hidden] * layers
+    ka, kc = jax.random.split(jax.random.PRNGKey(0))
+    actor = mlp_init(ka, [obs + goal, *widths, act])
+    critic = mlp_init(kc, [obs + goal + act, *widths, 1])
+    copy = lambda t: jax.tree.map(jnp.array, t)  # noqa: E731  (distinct buffers: donated)
+    state = (actor, critic, copy(actor), copy(critic), opt.init(actor), opt.init(critic))
+
+    def step(s, k):
+        actor, critic, t_actor, t_critic, oa, oc = s
+        k1, k2, k3 = jax.random.split(k, 3)
+        og = jax.random.normal(k1, (batch, obs + goal))
+        nog = jax.random.normal(k2, (batch, obs + goal))
+        a = jax.random.uniform(k3, (batch, act), minval=-1.0, maxval=1.0)
+        q_next = mlp(t_critic, jnp.concatenate([nog, jnp.tanh(mlp(t_actor, nog))], -1))
+        y = jax.lax.stop_gradient(-1.0 + 0.98 * q_next)
+
+        def c_loss(c):
+            return jnp.mean((mlp(c, jnp.concatenate([og, a], -1)) - y) ** 2)
+
+        def a_loss(p):
+            return -jnp.mean(mlp(critic, jnp.concatenate([og, jnp.tanh(mlp(p, og))], -1)))
+
+        uc, oc = opt.update(jax.grad(c_loss)(critic), oc, critic)
+        ua, oa = opt.update(jax.grad(a_loss)(actor), oa, actor)
+        critic, actor = optax.apply_updates(critic, uc), optax.apply_updates(actor, ua)
+        avg = lambda t, o: jax.tree.map(lambda x, y: 0.95 * x + 0.05 * y, t, o)  # noqa: E731
+        return (actor, critic, avg(t_actor, actor), avg(t_critic, critic), oa, oc), None
+
+    def run(s, _hp):
+        s, _ = jax.lax.scan(step, s, jax.random.split(jax.random.PRNGKey(1), n_batches))
+        return s, jnp.zeros(())
+
+    fn = jax.jit(run, donate_argnums=0)
+    state, m = fn(state, None)
+    jax.block_until_ready((state, m))
+    return fn, state, None
+
+
 def time_once(fns: dict, k) -> float:
     cycle, ts, hp = fns[k]
     t0 = time.perf_counter()
@@ -82,11 +146,19 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=20)
     ap.add_argument("--overlap-cycles", type=int, default=10,
                     help="cycles per timed epoch for the overlap rows (0: skip them)")
+    ap.add_argument("--variants", nargs="*", default=[], metavar="NAME:K=V,K=V",
+                    help="further settings to time beside the two, e.g. "
+                    "fast+bf16:preset=fast,compute_dtype=bfloat16")
     ap.add_argument("--out", default=str(HERE / "results" / "bench_cycle.md"))
     args = ap.parse_args()
 
     setups = {"default": [f"env={args.env}"], args.preset: [f"env={args.env}",
                                                              f"preset={args.preset}"]}
+    for v in args.variants:
+        name, _, kvs = v.partition(":")
+        if not name or not kvs:
+            raise SystemExit(f"error: --variants takes NAME:key=value,key=value, got {v!r}")
+        setups[name] = [f"env={args.env}", *kvs.split(",")]
     fns, cfgs = {}, {}
     for name, settings in setups.items():
         cfg, cycle, ts, hp = cycle_fn(settings)
@@ -94,6 +166,13 @@ def main() -> None:
         fns[(name, "full")] = (cycle, ts, hp)
         _, cycle1, ts1, hp1 = cycle_fn([*settings, "n_batches=1"])
         fns[(name, "one")] = (cycle1, ts1, hp1)
+    plain = {}  # the plain learner at each setting's widths and dtype, timed alongside
+    for name, cfg in cfgs.items():
+        shape = (cfg.n_batches, cfg.hidden, cfg.layers, cfg.compute_dtype)
+        if shape not in plain.values():
+            dt = None if cfg.compute_dtype == "float32" else jnp.bfloat16
+            fns[("plain", shape)] = plain_learner(cfg.n_batches, cfg.hidden, cfg.layers, dt)
+        plain[name] = shape
     if args.overlap_cycles:
         for name, settings in setups.items():
             for ov in ("false", "true"):
@@ -109,29 +188,38 @@ def main() -> None:
         one = statistics.median(times[(name, "one")])
         upd = (full - one) / max(cfg.n_batches - 1, 1)
         steps = cfg.num_envs * 50
+        plain_upd = statistics.median(times[("plain", plain[name])]) / cfg.n_batches
         rows.append({
-            "setting": name, "num_envs": cfg.num_envs, "n_batches": cfg.n_batches,
+            "setting": name, "settings": setups[name], "num_envs": cfg.num_envs,
+            "n_batches": cfg.n_batches, "net": f"{cfg.layers}x{cfg.hidden}",
+            "compute_dtype": cfg.compute_dtype,
             "cycle_ms": 1e3 * full, "rollout_ms": 1e3 * one, "update_ms": 1e3 * upd,
             "rollout_share": one / full, "env_steps_per_s": steps / full,
-            "updates_per_s": cfg.n_batches / full,
+            "updates_per_s": cfg.n_batches / full, "plain_update_ms": 1e3 * plain_upd,
+            "plain_updates_per_s": 1 / plain_upd,
         })
     lines = [
         f"# Where a {args.env} training cycle's time goes",
         "",
         f"`python experiments/bench_cycle.py --env {args.env} --preset {args.preset} --repeats "
-        f"{args.repeats}` on {platform.machine()} ({platform.processor() or 'CPU'}), "
+        f"{args.repeats}{''.join(' --variants ' + v for v in args.variants)}` on "
+        f"{platform.machine()} ({platform.processor() or 'CPU'}), "
         f"{jax.device_count()} JAX device(s); medians of {args.repeats} interleaved repeats. "
         "'rollout' is the cycle at n_batches=1 (rollout, store, normaliser, one update); "
-        "'update' is (cycle - rollout) / (n_batches - 1), one sampled gradient step.",
+        "'update' is (cycle - rollout) / (n_batches - 1), one sampled gradient step; "
+        "'plain update' is the plain XLA learner's (same widths and dtype, no replay), timed "
+        "in the same rounds.",
         "",
-        "| setting | envs x steps | updates | cycle ms | rollout ms (share) | update ms | "
-        "env-steps/s | updates/s |",
-        "|---|---|---|---|---|---|---|---|",
+        "| setting | envs x steps | updates | net | cycle ms | rollout ms (share) | update ms | "
+        "plain update ms | env-steps/s | updates/s |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
+        net = r["net"] + (" bf16" if r["compute_dtype"] == "bfloat16" else "")
         lines.append(
-            f"| {r['setting']} | {r['num_envs']} x 50 | {r['n_batches']} | {r['cycle_ms']:.0f} | "
-            f"{r['rollout_ms']:.0f} ({100 * r['rollout_share']:.0f}%) | {r['update_ms']:.2f} | "
+            f"| {r['setting']} | {r['num_envs']} x 50 | {r['n_batches']} | {net} | "
+            f"{r['cycle_ms']:.0f} | {r['rollout_ms']:.0f} ({100 * r['rollout_share']:.0f}%) | "
+            f"{r['update_ms']:.2f} | {r['plain_update_ms']:.2f} | "
             f"{r['env_steps_per_s']:.0f} | {r['updates_per_s']:.0f} |")
     if args.overlap_cycles:
         lines += [

@@ -37,6 +37,7 @@ MIN_DHER_RECORDS = 65536
 BACKENDS: tuple[str, ...] = ("auto", "mujoco", "mjx")
 SCENES: tuple[str, ...] = ("auto", "original", "mjx")
 TERMINAL_RULES: tuple[str, ...] = ("none", "success", "exact")
+COMPUTE_DTYPES: tuple[str, ...] = ("float32", "bfloat16")
 
 # Fields whose value may differ between a run and its continuation: they change neither the
 # learning problem nor the shapes of what the checkpoint holds.
@@ -50,6 +51,7 @@ RESUMABLE_KEYS: frozenset[str] = frozenset(
         "checkpoint_every",
         "tensorboard",
         "progress",
+        "compile_cache",
     }
 )
 # The fields that reach the compiled program only as traced values (``program.Hyper``), so runs
@@ -169,6 +171,11 @@ class Config:
         1, "the actor is updated every policy_delay-th gradient step (TD3); 1: every step"
     )
     layer_norm: bool = _f(False, "LayerNorm in the critic's hidden layers")
+    compute_dtype: str = _f(
+        "float32", "dtype of the hidden layers' matmuls: float32|bfloat16 (parameters, "
+        "optimiser state, losses and output layers stay float32). Changes the numerics: "
+        "docs/performance.md, 'bfloat16'"
+    )
     n_step: int = _f(
         1, "n-step returns: each sampled row sums n rewards (its own goal throughout, no "
         "off-policy correction) before bootstrapping; 1: one-step (baselines)"
@@ -227,6 +234,11 @@ class Config:
     checkpoint_every: int = _f(1, "epochs between checkpoints")
     tensorboard: bool = _f(False, "also write TensorBoard scalars (needs tensorboardX)")
     progress: bool = _f(True, "show a progress bar")
+    compile_cache: bool = _f(
+        True, "keep compiled programs on disk for later processes (JAX's persistent cache, "
+        "one directory per CPU kind and JAX version under $RDHER_JAX_CACHE_DIR or "
+        "~/.cache/rdher_jax); programs holding the native physics callback are not cacheable"
+    )
 
 
 FIELD_NAMES: tuple[str, ...] = tuple(f.name for f in dataclasses.fields(Config))
@@ -294,6 +306,7 @@ def validate(cfg: Config) -> Config:
     _one_of("backend", cfg.backend, BACKENDS)
     _one_of("scene", cfg.scene, SCENES)
     _one_of("terminal", cfg.terminal, TERMINAL_RULES)
+    _one_of("compute_dtype", cfg.compute_dtype, COMPUTE_DTYPES)
     _check(cfg.terminal != "exact" or cfg.n_step == 1, "terminal=exact needs n_step=1")
     if cfg.preset is not None:
         _one_of("preset", cfg.preset, tuple(PRESETS))

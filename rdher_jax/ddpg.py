@@ -175,6 +175,7 @@ def make_ddpg(
     noise_clip: float = 0.5,
     policy_delay: int = 1,
     layer_norm: bool = False,
+    compute_dtype: str = "float32",
 ) -> DDPG:
     """Builds the DDPG functions for fixed dimensions and architecture.
 
@@ -193,11 +194,16 @@ def make_ddpg(
         policy_delay: the actor is updated on every policy_delay-th gradient step (TD3's
             delayed policy update); 1 (baselines) updates it on every step.
         layer_norm: LayerNorm in the critic's hidden layers.
+        compute_dtype: the hidden layers' matmul dtype, "float32" or "bfloat16" (parameters,
+            optimiser state, losses and the output layers stay float32).
     Returns:
         A DDPG of pure, jittable functions.
     """
-    actor = Actor(act_dim=act_dim, hidden=tuple(hidden), max_u=max_u)
-    critic = Critic(hidden=tuple(hidden), max_u=max_u, layer_norm=layer_norm)
+    if compute_dtype not in ("float32", "bfloat16"):
+        raise ValueError(f"compute_dtype must be float32 or bfloat16, got {compute_dtype!r}")
+    dtype = None if compute_dtype == "float32" else jnp.bfloat16  # None: the float32 path
+    actor = Actor(act_dim=act_dim, hidden=tuple(hidden), max_u=max_u, dtype=dtype)
+    critic = Critic(hidden=tuple(hidden), max_u=max_u, layer_norm=layer_norm, dtype=dtype)
     if policy_delay < 1:
         raise ValueError(f"policy_delay must be >= 1, got {policy_delay}")
 

@@ -188,6 +188,7 @@ class OverlapEpoch:
         lift = jax.vmap if vmapped else (lambda f: f)
         self.learn = jax.jit(lift(program.learn), donate_argnums=0)
         self.collect = jax.jit(lift(program.collect))
+        self.init_state = jax.jit((jax.vmap if vmapped else _one_run)(program.init_state))
         self.finish = jax.jit(lift(program.finish), donate_argnums=0)
         self.set_pending = jax.jit(lambda ts, p: ts.replace(pending=p), donate_argnums=0)
         self.drop_axis = jax.jit(lambda t: jax.tree.map(lambda x: x.reshape(x.shape[1:]), t),
@@ -195,17 +196,38 @@ class OverlapEpoch:
         self.add_axis = jax.jit(lambda t: jax.tree.map(lambda x: x.reshape((1, *x.shape)), t),
                                 donate_argnums=0)
 
+    def init(self, keys: Any, hp: Any) -> Any:
+        """``program.init`` (``init_overlap``) as two programs: the state, whose program has no
+        host callback and so is cached for later processes (rdher_jax.compile_cache), then
+        the first cycle's episodes by the ``collect`` program every cycle uses."""
+        ts = self.init_state(keys, hp)
+        if not self.vmapped:
+            ts, hp = self.drop_axis(ts), jax.tree.map(lambda x: x[0], hp)
+        pending = self.collect(self._view(ts), jax.device_put(hp, self.collect_device),
+                               self._first(ts, True))
+        ts = self.set_pending(ts, jax.device_put(pending, self.device))
+        return ts if self.vmapped else self.add_axis(ts)
+
+    def _view(self, ts: Any) -> Any:
+        """What collect reads (actor, normaliser, key), on the collecting device."""
+        return jax.device_put(ts.replace(buffer=None, relabel=None, pending=None),
+                              self.collect_device)
+
+    def _first(self, ts: Any, value: bool) -> jax.Array:
+        """collect's ``first`` flag, one per run when vmapped (always an array: one program)."""
+        shape = ts.epoch.shape if self.vmapped else ()
+        return jax.device_put(np.full(shape, value), self.collect_device)
+
     def __call__(self, ts: Any, hp: Any) -> tuple[Any, Any]:
         if not self.vmapped:
             ts, hp = self.drop_axis(ts), jax.tree.map(lambda x: x[0], hp)
         hp_c = jax.device_put(hp, self.collect_device)
+        later = self._first(ts, False)
         ms = []
         for _ in range(self.n_cycles):
-            # What collect reads (actor, normaliser, key), copied before learn takes ts over.
-            view = jax.device_put(ts.replace(buffer=None, relabel=None, pending=None),
-                                  self.collect_device)
+            view = self._view(ts)  # copied before learn takes ts over
             ts, m = self.learn(ts, hp)
-            pending = self.collect(view, hp_c)
+            pending = self.collect(view, hp_c, later)
             ts = self.set_pending(ts, jax.device_put(pending, self.device))
             ms.append(m)
         axis = 1 if self.vmapped else 0  # (runs, cycles, ...) or (cycles, ...)
@@ -244,12 +266,13 @@ class RunBatch:
             # from uncommitted inputs, and a resume in the same process should not recompile.
             self.sharding = jax.sharding.SingleDeviceSharding(self.devices[0])
             lift = jax.vmap if vmapped else _one_run
-            self.init = jax.jit(lift(program.init))
             if overlap is None:
+                self.init = jax.jit(lift(program.init))
                 self.epoch = jax.jit(lift(program.epoch), donate_argnums=0)
             else:
                 self.epoch = OverlapEpoch(program, vmapped, self.devices[0], overlap[1],
                                           overlap[0])
+                self.init = self.epoch.init
             return
         if overlap is not None:
             raise ValueError("an overlap=true program runs on one learner device")
@@ -604,7 +627,7 @@ def drive(plan: Plan, argv: Sequence[str] = (), prog: str = "", log=print,
     run's best test success), "diverged" ({name: epoch}), "program", "summary" (sweep: the
     summary's runs and settings)}``.
     """
-    from . import distributed
+    from . import compile_cache, distributed
     from .program import hparams_from_config
 
     argv = list(argv)
@@ -621,6 +644,7 @@ def drive(plan: Plan, argv: Sequence[str] = (), prog: str = "", log=print,
         check_out_dir(plan)
     if plan.sweep and plan.resume:
         check_process_count(plan.out_dir, procs)
+    compile_cache.configure(cfg.compile_cache)
     env, _, batch = batch_for(runs, devices, vmapped=plan.sweep)
     hps = batch.put(stack([hparams_from_config(c) for c in runs]))
     keys = batch.put(stack([jax.random.PRNGKey(c.seed) for c in runs]))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import flax.linen as nn
 import jax
@@ -24,15 +25,21 @@ class MLP(nn.Module):
     hidden: Sequence[int]
     out_dim: int
     layer_norm: bool = False
+    # The hidden layers' computation dtype (None: the inputs', float32). bfloat16: inputs and
+    # kernels are cast to it for the matmuls; parameters stay float32, and the output layer
+    # computes in float32 from the last hidden layer's values.
+    dtype: Any = None
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
         """Args: x (..., in_dim). Returns: (..., out_dim)."""
         for i, width in enumerate(self.hidden):
-            x = nn.Dense(width, kernel_init=_KERNEL_INIT, name=f"hidden_{i}")(x)
+            x = nn.Dense(width, kernel_init=_KERNEL_INIT, dtype=self.dtype, name=f"hidden_{i}")(x)
             if self.layer_norm:
                 x = nn.LayerNorm(name=f"norm_{i}")(x)
             x = nn.relu(x)
+        if self.dtype is not None:
+            x = x.astype(jnp.float32)
         return nn.Dense(self.out_dim, kernel_init=_KERNEL_INIT, name="out")(x)
 
 
@@ -48,6 +55,7 @@ class Actor(nn.Module):
     act_dim: int
     hidden: Sequence[int] = (256, 256, 256)
     max_u: float = 1.0
+    dtype: Any = None  # hidden layers' computation dtype (MLP.dtype)
 
     @nn.compact
     def __call__(self, obs: jax.Array, goal: jax.Array) -> jax.Array:
@@ -61,7 +69,8 @@ class Actor(nn.Module):
             Actions in [-max_u, max_u], (..., act_dim).
         """
         x = jnp.concatenate([obs, goal], axis=-1)
-        return self.max_u * jnp.tanh(MLP(self.hidden, self.act_dim, name="mlp")(x))
+        return self.max_u * jnp.tanh(
+            MLP(self.hidden, self.act_dim, dtype=self.dtype, name="mlp")(x))
 
 
 class Critic(nn.Module):
@@ -76,6 +85,7 @@ class Critic(nn.Module):
     hidden: Sequence[int] = (256, 256, 256)
     max_u: float = 1.0
     layer_norm: bool = False
+    dtype: Any = None  # hidden layers' computation dtype (MLP.dtype)
 
     @nn.compact
     def __call__(self, obs: jax.Array, goal: jax.Array, action: jax.Array) -> jax.Array:
@@ -90,4 +100,4 @@ class Critic(nn.Module):
             Q values, (...,).
         """
         x = jnp.concatenate([obs, goal, action / self.max_u], axis=-1)
-        return MLP(self.hidden, 1, self.layer_norm, name="mlp")(x)[..., 0]
+        return MLP(self.hidden, 1, self.layer_norm, self.dtype, name="mlp")(x)[..., 0]

@@ -86,6 +86,11 @@ class EpochMetrics:
     bias_unw_dher: jax.Array
 
 
+# The key of the episodes an overlap=true run stores in its first cycle: fold_in(run key, this),
+# which nothing else uses ('overlap').
+FIRST_COLLECT = 0x0E1A
+
+
 class Program(NamedTuple):
     init: Any
     cycle: Any
@@ -101,6 +106,9 @@ class Program(NamedTuple):
     collect: Any = None
     learn: Any = None
     finish: Any = None
+    # init without the first cycle's episodes (no host callback, so its compiled program can be
+    # cached); init_overlap(key, hp) == first_pending(init_state(key, hp), hp).
+    init_state: Any = None
 
 
 def hparams_from_config(cfg) -> Hyper:
@@ -126,6 +134,7 @@ def make_program(cfg, env) -> Program:
         obs_dim, goal_dim, act_dim, hidden=(cfg.hidden,) * cfg.layers,
         target_noise=cfg.target_noise, noise_clip=cfg.noise_clip,
         policy_delay=cfg.policy_delay, layer_norm=cfg.layer_norm,
+        compute_dtype=cfg.compute_dtype,
     )
     n_envs, n_test = cfg.num_envs, cfg.n_test_rollouts
     v_reset, v_step = jax.vmap(env.reset), jax.vmap(env.step)
@@ -180,9 +189,11 @@ def make_program(cfg, env) -> Program:
         one_hot = (b.source[:, None] == jnp.arange(len(SOURCE_NAMES))[None, :]).astype(q.dtype)
         return {"w": (q - lam * ret) @ one_hot, "u": (q - ret) @ one_hot, "n": one_hot.sum(0)}
 
-    def collect(ts: TrainState, hp: Hyper) -> Pending:
-        """The episodes ``cycle(ts, hp)`` would collect: its rollout key, ts's actor."""
-        k_roll = jax.random.split(ts.key, 5)[1]
+    def collect(ts: TrainState, hp: Hyper, first: jax.Array | bool = False) -> Pending:
+        """The episodes ``cycle(ts, hp)`` would collect: its rollout key, ts's actor. ``first``
+        (traced, so one program does both): those ``init_overlap`` adds to a fresh state."""
+        k_roll = jnp.where(first, jax.random.fold_in(ts.key, FIRST_COLLECT),
+                           jax.random.split(ts.key, 5)[1])
         ep, success = rollout(k_roll, ts.ddpg, hp.ddpg, n_envs, explore=True)
         return Pending(ep, success)
 
@@ -280,10 +291,9 @@ def make_program(cfg, env) -> Program:
         with a key of their own (so from then on every cycle's rollout key is the one it has
         without overlap)."""
         ts = init(key, hp)
-        k_first = jax.random.fold_in(ts.key, 0x0E1A)  # 'overlap' warm-up: no other use
-        ep, success = rollout(k_first, ts.ddpg, hp.ddpg, n_envs, explore=True)
-        return ts.replace(pending=Pending(ep, success))
+        return ts.replace(pending=collect(ts, hp, True))
 
     return Program(init=init_overlap if cfg.overlap else init, cycle=cycle, epoch=epoch,
                    evaluate=evaluate, hparams=hparams_from_config(cfg), ddpg=agent,
-                   relabeller=relabeller, collect=collect, learn=learn, finish=finish)
+                   relabeller=relabeller, collect=collect, learn=learn, finish=finish,
+                   init_state=init)

@@ -1,5 +1,8 @@
+import atexit
 import os
+import shutil
 import subprocess
+import tempfile
 
 import pytest
 from rdher_jax.envs import CPU_XLA_FLAGS
@@ -9,6 +12,12 @@ from rdher_jax.envs import CPU_XLA_FLAGS
 _missing = [f for f in CPU_XLA_FLAGS if f not in os.environ.get("XLA_FLAGS", "")]
 if _missing:
     os.environ["XLA_FLAGS"] = " ".join([os.environ.get("XLA_FLAGS", ""), *_missing]).strip()
+
+# Compiled programs persist between processes (rdher_jax.compile_cache): the tests share a
+# cache of their own, never the user's.
+if "RDHER_JAX_CACHE_DIR" not in os.environ:
+    os.environ["RDHER_JAX_CACHE_DIR"] = tempfile.mkdtemp(prefix="rdher-jax-test-cache-")
+    atexit.register(shutil.rmtree, os.environ["RDHER_JAX_CACHE_DIR"], True)
 
 
 def _one_line_error(p: subprocess.Popen) -> str:

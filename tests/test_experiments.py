@@ -222,6 +222,29 @@ def test_dry_run_plans_every_algorithm_and_task(tmp_path, capsys):
     assert not (tmp_path / "out").exists() and not (tmp_path / "runs").exists()
 
 
+def test_ablation_split_is_one_sweep_per_setting(tmp_path, capsys, one_line_error):
+    """--split: the same seven settings (names, labels, order, pairs), each its own sweep named
+    by the setting; --settings picks some, in the order given."""
+    whole = [o for *_, outs in ablation.sweeps("FetchPush") for o in outs]
+    split = ablation.sweeps("FetchPush", split=True)
+    assert set(whole) == {o for *_, outs in split for o in outs} and len(whole) == 7
+    assert all(len(outs) == 1 and name == outs[0].name for name, _, _, outs in split)
+    args = ["--profile", "paper", "--tasks", "FetchPush", "--seeds", "3", "--out",
+            str(tmp_path / "out"), "--runs-dir", str(tmp_path / "runs"), "--dry-run", "--split"]
+    assert ablation.main([*args, "--settings", "rdher_lr4_lh0.5", "her"]) == 0
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if "(dry run)" in ln]
+    assert len(lines) == 2 and "seeds=3" in lines[0] and "seeds=3" in lines[1]
+    assert "algo=rdher" in lines[0] and "'lambdas=[[4,0.5]]'" in lines[0]
+    assert lines[0].endswith("/ablation/paper/FetchPush/rdher_lr4_lh0.5")
+    assert "algo=her" in lines[1] and lines[1].endswith("/ablation/paper/FetchPush/her")
+    assert ablation.main(args) == 0
+    assert len([ln for ln in capsys.readouterr().out.splitlines() if "(dry run)" in ln]) == 7
+    p = subprocess.Popen([sys.executable, str(EXP / "ablation.py"), *args[:-1], "--settings",
+                          "rdher_lr1_lh2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         text=True)
+    assert "needs --split" in one_line_error(p)
+
+
 def test_cpu_push_budget_is_preset_fast(tmp_path, capsys):
     args = ["--profile", "cpu", "--tasks", "FetchPush", "--out", str(tmp_path / "out"),
             "--runs-dir", str(tmp_path / "runs"), "--dry-run"]

@@ -66,14 +66,16 @@ def test_mjx_matches_native_on_the_edited_scene(task):
 
 @pytest.mark.slow
 def test_trainer_runs_unchanged_on_mjx(tmp_path):
-    """The trainer's epoch, unchanged, on the mjx backend (the GPU path), at a tiny size."""
+    """The trainer's epoch, unchanged, on the mjx backend (the GPU path), at a tiny size: one
+    cycle of 16 envs (a GPU run's batched path, small enough for a CPU)."""
     from rdher_jax import train as train_mod
     from rdher_jax.config import Config, resolve
 
-    cfg = resolve(Config(env="FetchReach", backend="mjx", epochs=1, n_cycles=1, n_batches=2,
-                         batch_size=16, buffer_size=500, n_test_rollouts=2, hidden=16,
-                         run_dir=str(tmp_path / "run"), progress=False))
+    cfg = resolve(Config(env="FetchReach", backend="mjx", epochs=1, n_cycles=1, num_envs=16,
+                         n_batches=2, batch_size=16, buffer_size=2000, n_test_rollouts=2,
+                         hidden=16, run_dir=str(tmp_path / "run"), progress=False))
     out = train_mod.train(cfg)
     assert np.isfinite(float(out["row"]["critic_loss"]))
     assert 0.0 <= float(out["row"]["test_success"]) <= 1.0
     assert jnp.isfinite(out["row"]["actor_loss"])
+    assert int(float(out["row"]["env_steps"])) == 16 * 50

@@ -110,3 +110,29 @@ def test_overlap_needs_two_host_devices():
         overlap_devices(None)
     assert parse_args(["overlap=true"]).overlap is True
     assert parse_args([]).overlap is False
+
+
+@pytest.mark.parametrize("vmapped", [False, True])
+def test_split_init_is_init_overlap(vmapped):
+    """The driver starts an overlapped run as two programs (the state, cacheable, then the first
+    episodes by the cycles' own collect program); that is ``program.init`` (init_overlap) in
+    one: the same state and the same first episodes, bit for bit."""
+    out = child(f"""
+        import jax, numpy as np
+        from rdher_jax.config import parse_args, resolve
+        from rdher_jax.driver import build, OverlapEpoch, overlap_devices
+        from rdher_jax.program import hparams_from_config
+        cfg = resolve(parse_args({TINY!r} + ["overlap=true", "run_dir=/tmp/unused-overlap"]))
+        devices, other = overlap_devices(None)
+        _, program = build(cfg)
+        hp = jax.tree.map(lambda x: x[None], hparams_from_config(cfg))
+        keys = jax.random.PRNGKey(7)[None]
+        ref = jax.jit(jax.vmap(program.init))(keys, hp)
+        got = OverlapEpoch(program, {vmapped}, devices[0], other, cfg.n_cycles).init(keys, hp)
+        a, b = jax.tree.leaves(jax.device_get(ref)), jax.tree.leaves(jax.device_get(got))
+        assert jax.tree.structure(ref) == jax.tree.structure(got)
+        assert all(np.array_equal(x, y, equal_nan=True) for x, y in zip(a, b, strict=True))
+        assert np.asarray(got.pending.episode.obs).shape[:2] == (1, cfg.num_envs)
+        print("ok")
+    """)
+    assert out.strip().endswith("ok")

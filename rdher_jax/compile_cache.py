@@ -1,0 +1,93 @@
+"""JAX's persistent compilation cache, in a per-user directory keyed by this host.
+
+A later process loads a compiled program from disk instead of compiling it again. JAX keys each
+entry by the program (its HLO), the compile options, the XLA flags and the backend; on a CPU the
+cached executables are native code for the CPU that compiled them, which JAX's key does not
+name, so a cache directory shared between machines (a networked home) could hand one CPU
+another's instructions. The directory here is therefore one per host kind:
+``<root>/xla-<key>``, the key a hash of the CPU's model and instruction-set flags, the machine,
+and the jax/jaxlib versions. A different CPU, JAX or config is a cache miss, never a crash.
+
+Programs holding a host callback are never written (JAX refuses them: the callback is a pointer
+into the process that compiled it). With ``backend=mujoco`` the native physics is such a
+callback, so what is cached there is what runs without it: the trainer's ``init``, and with
+``overlap=true`` the learner's program (``learn``), which is most of the compile time. On the
+``mjx`` backend every program is cached.
+
+``compile_cache=false`` turns it off; ``RDHER_JAX_CACHE_DIR`` moves the root (default
+``$XDG_CACHE_HOME/rdher_jax``, else ``~/.cache/rdher_jax``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import platform
+from pathlib import Path
+
+import jax
+
+ENV_VAR = "RDHER_JAX_CACHE_DIR"
+# Programs that compile faster than this are not written: reading one back costs about as much.
+MIN_COMPILE_SECS = 0.5
+
+
+def default_root() -> Path:
+    if os.environ.get(ENV_VAR):
+        return Path(os.environ[ENV_VAR]).expanduser()
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base).expanduser() / "rdher_jax"
+
+
+def _cpuinfo() -> tuple[str, str]:
+    """(model name, sorted instruction-set flags) of this host's first CPU; empty strings where
+    /proc/cpuinfo is not there (then platform.processor() stands for both)."""
+    model = flags = ""
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
+            for line in f:
+                key, _, value = line.partition(":")
+                key = key.strip().lower()
+                if key == "model name" and not model:
+                    model = value.strip()
+                elif key in ("flags", "features") and not flags:
+                    flags = " ".join(sorted(value.split()))
+                if model and flags:
+                    break
+    except OSError:
+        pass
+    return model or platform.processor(), flags
+
+
+def host_key(cpuinfo: tuple[str, str] | None = None) -> str:
+    """16 hex digits naming what a cached CPU executable depends on beyond JAX's own key."""
+    import jaxlib
+
+    model, flags = cpuinfo if cpuinfo is not None else _cpuinfo()
+    parts = [platform.machine(), model, flags, jax.__version__, jaxlib.__version__]
+    return hashlib.sha256("\n".join(parts).encode()).hexdigest()[:16]
+
+
+def cache_dir(root: str | Path | None = None) -> Path:
+    return Path(root if root is not None else default_root()) / f"xla-{host_key()}"
+
+
+def configure(enabled: bool, root: str | Path | None = None,
+              min_compile_secs: float = MIN_COMPILE_SECS) -> Path | None:
+    """Point JAX's persistent cache at this host's directory (or turn it off); returns the
+    directory. Takes effect for every later compilation of this process, also after earlier
+    ones (the cache's once-per-process check is reset)."""
+    from jax.experimental.compilation_cache import compilation_cache as cc
+
+    path = None
+    if enabled:
+        path = cache_dir(root)
+        try:
+            path.mkdir(parents=True, exist_ok=True)
+        except OSError:  # an unwritable home: run without the cache rather than fail
+            path = None
+    jax.config.update("jax_enable_compilation_cache", path is not None)
+    jax.config.update("jax_compilation_cache_dir", None if path is None else str(path))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_secs))
+    cc.reset_cache()
+    return path
