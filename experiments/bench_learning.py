@@ -21,6 +21,7 @@ import platform
 import statistics
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 THRESHOLDS = (0.5, 0.9)
@@ -41,21 +42,40 @@ def first_hit(rows: list[dict], threshold: float, window: int) -> dict | None:
     return out or None
 
 
+STARTUP_FILE = "bench_startup_s.txt"  # written beside a run started fresh by this script
+
+
 def run_seed(run_dir: Path, seed: int, settings: list[str], train: bool = True) -> list[dict]:
-    """Train (or resume, or just read) one seed; returns its metrics rows."""
+    """Train (or resume, or just read) one seed; returns its metrics rows.
+
+    A run this script starts fresh also gets its start-up time, from starting the process to
+    the start of the training clock (imports, env build, init; the trainer writes run_info.json
+    just before its clock starts), kept in ``<run_dir>/bench_startup_s.txt``."""
     if not train:
         if not (run_dir / "metrics.csv").exists():
             return []
         with open(run_dir / "metrics.csv", newline="") as f:
             return list(csv.DictReader(f))
     argv = [sys.executable, "-m", "rdher_jax.train"]
-    if (run_dir / "config.yaml").exists():
+    fresh = not (run_dir / "config.yaml").exists()
+    if not fresh:
         argv += [f"resume={run_dir}"] + [s for s in settings if s.startswith("epochs=")]
     else:
         argv += [*settings, f"seed={seed}", f"run_dir={run_dir}"]
+    t_start = time.time()
     subprocess.run(argv + ["progress=false"], check=True)
+    if fresh:
+        startup = (run_dir / "run_info.json").stat().st_mtime - t_start
+        (run_dir / STARTUP_FILE).write_text(f"{startup:.3f}\n")
     with open(run_dir / "metrics.csv", newline="") as f:
         return list(csv.DictReader(f))
+
+
+def startup_s(run_dir: Path) -> float | None:
+    try:
+        return float((run_dir / STARTUP_FILE).read_text())
+    except (OSError, ValueError):
+        return None
 
 
 def fmt(hit: dict | None, key: str) -> str:
@@ -129,6 +149,7 @@ def main() -> None:
             "env_steps": int(rows[-1]["env_steps"]) if rows else 0,
             "wall_s": float(rows[-1]["wall_time"]) if rows else 0.0,
             "best": max((float(r["test_success"]) for r in rows), default=0.0),
+            "startup_s": startup_s(run_dir),
             "hits": {str(t): first_hit(rows, t, args.window) for t in THRESHOLDS},
             "curve": [(int(r["env_steps"]), float(r["wall_time"]), float(r["test_success"]))
                       for r in rows],
@@ -140,18 +161,26 @@ def main() -> None:
         f"`python experiments/bench_learning.py --name {args.name} --seeds "
         f"{' '.join(map(str, args.seeds))} -- {' '.join(args.settings)}` on "
         f"{platform.machine()} ({platform.processor() or 'CPU'}); wall clock from the start "
-        "of training (the first epoch's compilation included, imports and env build not). "
+        "of training (the first epoch's compilation included, imports and env build not; "
+        "'start-up': from starting the process to that clock's start, for runs this script "
+        "started fresh). "
         f"'mean of {args.window}': the first epoch whose trailing mean of {args.window} epochs "
         "reaches the threshold." + (f" {args.note}" if args.note else ""),
         "",
         "| seed | epochs | env steps | minutes | best | "
-        + " | ".join(f"to {t} | to {t}, mean of {args.window}" for t in THRESHOLDS) + " |",
-        "|---" * (5 + 2 * len(THRESHOLDS)) + "|",
+        + " | ".join(f"to {t} | to {t}, mean of {args.window}" for t in THRESHOLDS)
+        + f" | start-up (s) | to {THRESHOLDS[-1]}, mean of {args.window}, from process start |",
+        "|---" * (7 + 2 * len(THRESHOLDS)) + "|",
     ]
     for seed, r in results.items():
         cells = []
         for t in THRESHOLDS:
             cells += [fmt(r["hits"][str(t)], "single"), fmt(r["hits"][str(t)], "window")]
+        up = r.get("startup_s")
+        last = (r["hits"][str(THRESHOLDS[-1])] or {}).get("window")
+        cells += ["-" if up is None else f"{up:.1f}",
+                  "-" if up is None or last is None
+                  else f"{(up + last['wall_s']) / 60:.1f} min"]
         lines.append(f"| {seed} | {r['epochs']} | {r['env_steps']:,} | {r['wall_s'] / 60:.1f} | "
                      f"{r['best']:.2f} | " + " | ".join(cells) + " |")
     text = "\n".join(lines) + "\n"
