@@ -597,6 +597,7 @@ def figure(kind: str, profile: str, data: Sequence[SettingData], x_col: str, pat
     fig, axes = plt.subplots(nrows, ncols, figsize=(5.6 * ncols, 4.0 * nrows), squeeze=False)
     cmap = plt.get_cmap("tab10")
     for ax, task in zip(axes.flat, tasks, strict=False):
+        marked = False
         for s in (s for s in data if s.task == task):
             x, med, q1, q3 = _curve(s, x_col)
             if not x:
@@ -609,6 +610,14 @@ def figure(kind: str, profile: str, data: Sequence[SettingData], x_col: str, pat
             ax.plot(x, med, color=color, lw=1.6, marker="o", ms=2.5, label=label,
                     ls="--" if s.name == "her" and kind == "ablation" else "-")
             ax.fill_between(x, q1, q3, color=color, alpha=0.15, lw=0)
+            paper = paper_best(task, s.meta.get("algo")) if kind == "benchmark" else None
+            if paper is not None:  # the paper's Table 2 (its best policy), at the curve's end
+                ax.plot([x[-1]], [paper / 100], color=color, marker="*", ms=10, ls="none",
+                        mec="black", mew=0.5, clip_on=False)
+                marked = True
+        if kind == "benchmark" and marked:
+            ax.plot([], [], color="grey", marker="*", ms=10, ls="none", mec="black", mew=0.5,
+                    label="paper, Table 2 (best policy)")
         n = max((len(s.runs) for s in data if s.task == task), default=0)
         ax.set_title(task)
         ax.set_xlabel("epoch" if x_col == "epoch" else "env steps per run")
