@@ -51,14 +51,19 @@ SETTING_NAMES: tuple[str, ...] = ("her", *(setting_name(lr, lh) for lr, lh in AB
 Sweep = tuple[str, str, object, tuple[Setting, ...]]
 
 
-def sweeps(task: str, split: bool = False, only: tuple[str, ...] | None = None) -> list[Sweep]:
+def sweeps(task: str, split: bool = False, only: tuple[str, ...] | None = None,
+           her_from_benchmark: bool = False) -> list[Sweep]:
     """(sweep name, algo, lambdas, settings) of one task's ablation. ``split``: one sweep per
     pair, named by its setting, in place of one sweep of all six; ``only``: these settings
-    (of :data:`SETTING_NAMES`) alone, in the order given."""
+    (of :data:`SETTING_NAMES`) alone, in the order given; ``her_from_benchmark``: vanilla HER
+    is read from benchmark.py's HER sweep of the same profile and task (the same program and
+    budget, at the benchmark's seeds), not run again."""
     weighted = tuple(Setting(setting_name(lr, lh), f"RDHER λ_r={num(lr)}, λ_h={num(lh)}",
                              "rdher", (lr, lh), i + 1)
                      for i, (lr, lh) in enumerate(ABLATION_PAIRS))
-    her = ("her", "her", None, (Setting("her", "vanilla HER", "her", None, 0),))
+    her: tuple = ("her", "her", None, (Setting("her", "vanilla HER", "her", None, 0),))
+    if her_from_benchmark:
+        her = (*her, (), "benchmark")
     if split:
         every = {s.name: (s.name, "rdher", (s.lambdas,), (s,)) for s in weighted}
         every["her"] = her
@@ -81,6 +86,10 @@ def main(argv: list[str] | None = None) -> int:
                     metavar="SETTING",
                     help=f"run only these settings, of {', '.join(SETTING_NAMES)} (a weighted "
                     "one needs --split); default: all seven")
+    ap.add_argument("--her-from-benchmark", action="store_true",
+                    help="read vanilla HER from experiments/benchmark.py's HER sweep of the "
+                    "same profile and task (the same runs at the benchmark's seeds) instead of "
+                    "running an HER sweep of its own; run benchmark.py first")
     args = ap.parse_args(argv)
     only = None if args.settings is None else tuple(dict.fromkeys(args.settings))
     if only is not None and not args.split and any(n != "her" for n in only):
@@ -88,7 +97,8 @@ def main(argv: list[str] | None = None) -> int:
               "pairs are one sweep)", file=sys.stderr)
         return 2
     return run_experiment(KIND, "ablation.py", args, argv,
-                          lambda task: sweeps(task, args.split, only))
+                          lambda task: sweeps(task, args.split, only,
+                                              args.her_from_benchmark))
 
 
 if __name__ == "__main__":

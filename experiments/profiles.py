@@ -181,10 +181,18 @@ class Job:
     runs_dir: Path
     budget: Budget
     extra: tuple[str, ...] = ()  # key=value tokens of this sweep alone (after the budget's)
+    # Another experiment's sweep that this one's setting is read from (e.g. the ablation's HER
+    # curve from the benchmark's HER sweep: the same program, seeds and budget). Such a sweep
+    # is collected here, never run: its own script runs it.
+    sweep_kind: str | None = None
 
     @property
     def sweep_dir(self) -> Path:
-        return self.runs_dir / self.kind / self.profile / self.task / self.name
+        return self.runs_dir / (self.sweep_kind or self.kind) / self.profile / self.task / self.name
+
+    @property
+    def borrowed(self) -> bool:
+        return self.sweep_kind is not None and self.sweep_kind != self.kind
 
     @property
     def epochs(self) -> int:
@@ -207,14 +215,18 @@ def make_jobs(kind: str, profile: str, tasks: Sequence[str], runs_dir: Path,
               sweeps: Callable[[str], list[tuple]]) -> list[Job]:
     """One Job per (task, sweep) given by ``sweeps(task)`` -> [(name, algo, lambdas, outputs)],
     or ``(name, algo, lambdas, outputs, extra)`` with ``extra`` the sweep's own key=value
-    tokens."""
+    tokens, or ``(..., extra, borrow)`` with ``borrow`` the kind of another experiment whose
+    sweep of that name is read (at the budget's own seed count, as that experiment runs it)."""
     jobs = []
     for task in tasks:
         b = budget_for(profile, task)
         settings = b.resolved(epochs)
-        for name, algo, lambdas, outputs, *extra in sweeps(task):
-            jobs.append(Job(kind, profile, task, name, algo, lambdas, seeds or b.seeds,
-                            settings, outputs, runs_dir, b, tuple(*extra)))
+        for name, algo, lambdas, outputs, *more in sweeps(task):
+            extra = tuple(more[0]) if more else ()
+            borrow = more[1] if len(more) > 1 else None
+            jobs.append(Job(kind, profile, task, name, algo, lambdas,
+                            b.seeds if borrow else (seeds or b.seeds), settings, outputs,
+                            runs_dir, b, extra, borrow))
     return jobs
 
 
@@ -482,7 +494,10 @@ def run_experiment(kind: str, script: str, args: Any, argv: Sequence[str],
         for task in tasks:
             mine = [j for j in jobs if j.task == task]
             for job in mine:
-                if not args.collect_only:
+                if job.borrowed and main:
+                    print(f"[{job.task} {job.name}] read from the {job.sweep_kind} sweep "
+                          f"{job.sweep_dir} (run by {job.sweep_kind}.py, not here)")
+                elif not args.collect_only:
                     run_job(job, progress and main, dry_run=args.dry_run,
                             log=print if main else (lambda *a, **k: None))
                 if not args.dry_run and main:

@@ -120,6 +120,28 @@ def test_best_policy_retested_on_fresh_episodes(results):
     assert "best policy retested" not in (results["out"] / "ablation/tiny/summary.md").read_text()
 
 
+def test_ablation_reads_her_from_the_benchmark(results, tmp_path, capsys):
+    """--her-from-benchmark: the ablation's HER curve is the benchmark's HER sweep, read and
+    never run; the same program and budget as the ablation's own HER sweep, so the same rows."""
+    out = tmp_path / "out"
+    args = ["--profile", "tiny", "--out", str(out), "--runs-dir", str(results["runs"]),
+            "--no-progress", "--eval-episodes", "0", "--split", "--settings", "her",
+            "--her-from-benchmark"]
+    assert ablation.main(args) == 0
+    printed = capsys.readouterr().out
+    assert "read from the benchmark sweep" in printed and "start" not in printed
+    got = out / "ablation/tiny/FetchReach/her"
+    bench = results["out"] / "benchmark/tiny/FetchReach/her"
+    own = results["out"] / "ablation/tiny/FetchReach/her"
+    for seed in (0, 1):
+        assert (got / f"s{seed}.csv").read_bytes() == (bench / f"s{seed}.csv").read_bytes()
+        strip = lambda rows: [{k: v for k, v in r.items() if k != "wall_time"} for r in rows]  # noqa: E731
+        assert strip(read_csv(got / f"s{seed}.csv")) == strip(read_csv(own / f"s{seed}.csv"))
+    meta = json.loads((got / "run_info.json").read_text())
+    assert meta["kind"] == "ablation"
+    assert meta["sweep"]["dir"].endswith("benchmark/tiny/FetchReach/her")
+
+
 def test_rerun_skips_finished_sweeps(results, capsys):
     csv_path = results["out"] / "ablation/tiny/FetchReach/her/s0.csv"
     before = csv_path.read_bytes()
