@@ -30,6 +30,9 @@ import jax
 ENV_VAR = "RDHER_JAX_CACHE_DIR"
 # Programs that compile faster than this are not written: reading one back costs about as much.
 MIN_COMPILE_SECS = 0.5
+# The directory's size bound; JAX evicts the least recently used entries beyond it (an entry
+# is 0.1-1 MB on a CPU).
+MAX_BYTES = 1 << 30
 
 
 def default_root() -> Path:
@@ -89,5 +92,6 @@ def configure(enabled: bool, root: str | Path | None = None,
     jax.config.update("jax_enable_compilation_cache", path is not None)
     jax.config.update("jax_compilation_cache_dir", None if path is None else str(path))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_secs))
+    jax.config.update("jax_compilation_cache_max_size", MAX_BYTES if path is not None else -1)
     cc.reset_cache()
     return path

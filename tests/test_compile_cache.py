@@ -28,7 +28,7 @@ def cache(tmp_path, monkeypatch):
     """A fresh cache directory for this test; JAX's cache settings are restored after it."""
     before = {k: getattr(jax.config, k) for k in (
         "jax_enable_compilation_cache", "jax_compilation_cache_dir",
-        "jax_persistent_cache_min_compile_time_secs")}
+        "jax_persistent_cache_min_compile_time_secs", "jax_compilation_cache_max_size")}
     monkeypatch.setenv(compile_cache.ENV_VAR, str(tmp_path))
     path = compile_cache.configure(True, min_compile_secs=0.0)
     yield path
