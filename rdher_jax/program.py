@@ -107,7 +107,8 @@ class Program(NamedTuple):
     learn: Any = None
     finish: Any = None
     # init without the first cycle's episodes (no host callback, so its compiled program can be
-    # cached); init_overlap(key, hp) == first_pending(init_state(key, hp), hp).
+    # cached): init_overlap(key, hp) is init_state(key, hp) with pending = collect(that state,
+    # hp, first=True), which driver.OverlapEpoch.init runs as two programs.
     init_state: Any = None
 
 
