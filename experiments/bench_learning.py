@@ -127,6 +127,10 @@ def main() -> None:
                     help="tabulate the runs as they stand (e.g. stopped early), train nothing")
     ap.add_argument("--note", default="", help="a sentence on how the runs were made, kept in "
                     "the .md and .json (e.g. how many ran at once)")
+    ap.add_argument("--limits-script", default=None, metavar="PATH",
+                    help="a machine-ceilings script (run as `python PATH --json FILE`, printing "
+                    "a table) to run before the seeds; its table goes into the report beside "
+                    "the runs, so they are read against the same day's machine")
     ap.add_argument("settings", nargs="*", help="key=value training settings")
     args = ap.parse_args()
 
@@ -137,6 +141,15 @@ def main() -> None:
         return
     if not args.name:
         ap.error("--name is required (or --summary)")
+    limits = None
+    if args.limits_script and not args.report_only:
+        import tempfile
+
+        with tempfile.NamedTemporaryFile(suffix=".json") as f:
+            p = subprocess.run([sys.executable, args.limits_script, "--json", f.name],
+                               capture_output=True, text=True, check=True)
+            limits = {"script": Path(args.limits_script).name, "table": p.stdout.strip(),
+                      "figures": json.loads(Path(f.name).read_text() or "{}")}
     results = {}
     for seed in args.seeds:
         run_dir = Path(args.runs_dir) / f"{args.name}-s{seed}"
@@ -183,11 +196,14 @@ def main() -> None:
                   else f"{(up + last['wall_s']) / 60:.1f} min"]
         lines.append(f"| {seed} | {r['epochs']} | {r['env_steps']:,} | {r['wall_s'] / 60:.1f} | "
                      f"{r['best']:.2f} | " + " | ".join(cells) + " |")
+    if limits is not None:
+        lines += ["", f"The machine's ceilings, measured just before the runs (`python "
+                  f"{limits['script']}`):", "", "```", limits["table"], "```"]
     text = "\n".join(lines) + "\n"
     (out / f"{args.name}.md").write_text(text)
     (out / f"{args.name}.json").write_text(json.dumps(
         {"settings": args.settings, "seeds": args.seeds, "note": args.note,
-         "results": results}, indent=1))
+         "machine_limits": limits, "results": results}, indent=1))
     print(text)
 
     import matplotlib
