@@ -11,11 +11,14 @@ experiment). The profile's name, doc and the task's budget are written into ever
   seeds, 5 epochs of 10 cycles (5,000 env steps per run, the default of ``python -m
   rdher_jax.train`` for Reach, where HER and RDHER reach 0.9-1.0 test success). FetchPush
   (``--tasks FetchPush``): :data:`PUSH_CPU`, ``preset=fast`` for 500,000 env steps, 3 seeds.
-- ``paper``: the paper's budget, for a GPU: every task, Table 1's settings, 5 seeds, 50 epochs
-  (10 cycles each for Reach, 50 for the others). The paper does not state its epoch counts; 50 is
-  ``n_epochs``'s default in the code it builds on (openai/baselines ``her/experiment/train.py``,
-  mengf1/DHER ``train_dyreach.py``) and fits Table 3's wall clock (HER on Push: 3 h 30 min on
-  one CPU core, i.e. 4.2 min per 50-cycle epoch; on Reach 46 min, 56 s per 10-cycle epoch).
+- ``paper``: the paper's budget: every task, Table 1's settings, 5 seeds, 50 epochs (10 cycles
+  each for Reach, 50 for the others). A CPU runs it: a 5-seed sweep is 13-17 min (Reach) and
+  1 h 45 min (Slide, PickAndPlace, HER) of one core beside another sweep
+  (``run_info.json`` under ``experiments/results/benchmark/paper/``). The paper does not
+  state its epoch counts; 50 is ``n_epochs``'s default in the code it builds on
+  (openai/baselines ``her/experiment/train.py``, mengf1/DHER ``train_dyreach.py``) and fits
+  Table 3's wall clock (HER on Push: 3 h 30 min on one CPU core, i.e. 4.2 min per 50-cycle
+  epoch; on Reach 46 min, 56 s per 10-cycle epoch).
 
 Sweep directories (with checkpoints) live under ``<runs-dir>/<kind>/<profile>/<task>/<sweep>``
 and are what makes a long experiment resumable: :func:`run_job` continues an unfinished sweep
@@ -125,8 +128,9 @@ PROFILES: dict[str, Profile] = {
                     "FetchReachMoving": REACH_MOVING_CPU, "FetchPushMoving": PUSH_MOVING_CPU},
                    ("FetchReach",)),
     "paper": Profile(
-        "the paper's budget, which a CPU can run (one FetchPush run: 12-15 min of one core "
-        "here): Table 1's settings, 50 epochs (Reach 10 cycles each, "
+        "the paper's budget, which a CPU can run (measured per run on one core of a 2-core "
+        "CPU, 5 seeds vmapped: Reach 2.6-3.4 min, Slide and PickAndPlace HER 21 min; one "
+        "FetchPush run 12-15 min): Table 1's settings, 50 epochs (Reach 10 cycles each, "
         "others 50), 5 seeds, every task",
         {**{t: Budget(5, {"epochs": 50, "n_cycles": TASK_TABLE[t].n_cycles, **PAPER_LEARNER},
                       "the paper's settings (epochs: see profiles.py)")
