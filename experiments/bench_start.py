@@ -6,7 +6,8 @@
 Each measured run is a fresh ``python -m rdher_jax.train`` process (the README's main job, plus
 the variant's ``key=value`` settings). The clock starts just before the process is started and
 stops when its ``metrics.csv`` first holds an epoch whose test success reaches ``--threshold``
-(polled every 20 ms); the process's whole wall clock is reported too.
+(polled every 20 ms, ``bench_train.cold_start_to``); the process's whole wall clock is
+reported too.
 
 - **cold**: a machine that never ran it: an empty compilation cache (``RDHER_JAX_CACHE_DIR``
   pointed at a new directory for each run).
@@ -22,58 +23,24 @@ A cold, ...) and medians reported, since this machine's speed drifts. Writes
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import os
 import platform
 import shlex
 import statistics
-import subprocess
-import sys
 import tempfile
-import time
 from pathlib import Path
+
+from bench_train import cold_start_to
 
 HERE = Path(__file__).resolve().parent
 
 
-def first_success(metrics: Path, threshold: float) -> tuple[int, int] | None:
-    """(epoch, env steps) of the first row of ``metrics`` at or above ``threshold``."""
-    try:
-        with open(metrics, newline="", encoding="utf-8") as f:
-            for row in csv.DictReader(f):
-                if float(row["test_success"]) >= threshold:
-                    return int(row["epoch"]), int(float(row["env_steps"]))
-    except (OSError, ValueError, KeyError):
-        pass
-    return None
-
-
-def one_run(settings: list[str], cache: Path, threshold: float, work: Path) -> dict:
-    run_dir = Path(tempfile.mkdtemp(prefix="run-", dir=work))
-    run_dir.rmdir()  # the trainer makes it
-    cmd = [sys.executable, "-m", "rdher_jax.train", *settings, "progress=false",
-           f"run_dir={run_dir}"]
-    env = {**os.environ, "RDHER_JAX_CACHE_DIR": str(cache)}
-    t0 = time.perf_counter()
-    p = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                         text=True)
-    reached = None
-    while p.poll() is None:
-        if reached is None:
-            hit = first_success(run_dir / "metrics.csv", threshold)
-            if hit is not None:
-                reached = (time.perf_counter() - t0, *hit)
-        time.sleep(0.02)
-    total = time.perf_counter() - t0
-    out, err = p.communicate()
-    if p.returncode != 0:
-        raise SystemExit(f"error: {shlex.join(cmd)} exited {p.returncode}: {err.strip()[-500:]}")
-    if reached is None:  # reached in the last epoch, written as the process ended
-        hit = first_success(run_dir / "metrics.csv", threshold)
-        reached = (total, *hit) if hit is not None else (None, None, None)
-    return {"to_threshold_s": reached[0], "epoch": reached[1], "env_steps": reached[2],
-            "process_s": total}
+def one_run(settings: list[str], cache: Path, threshold: float) -> dict:
+    r = cold_start_to(threshold, None, None, settings, cache_dir=cache, to_end=True)
+    hit = r["hit"] or {}
+    return {"to_threshold_s": hit.get("seconds"), "epoch": hit.get("epoch"),
+            "env_steps": hit.get("env_steps"), "process_s": r["process_s"]}
 
 
 def main() -> None:
@@ -94,13 +61,13 @@ def main() -> None:
         warm_cache = {}
         for v in args.variants:  # the warm caches, filled by an unmeasured run each
             warm_cache[v] = Path(tempfile.mkdtemp(prefix="warm-", dir=work))
-            one_run([*args.settings, *v.split()], warm_cache[v], args.threshold, work)
+            one_run([*args.settings, *v.split()], warm_cache[v], args.threshold)
         for r in range(args.repeats):
             for v in args.variants:
                 for mode in ("cold", "warm"):
                     cache = (warm_cache[v] if mode == "warm"
                              else Path(tempfile.mkdtemp(prefix="cold-", dir=work)))
-                    res = one_run([*args.settings, *v.split()], cache, args.threshold, work)
+                    res = one_run([*args.settings, *v.split()], cache, args.threshold)
                     results.setdefault((v, mode), []).append(res)
                     print(f"[{r + 1}/{args.repeats}] {v or '(main job)'} {mode}: "
                           f"{res['to_threshold_s']} s to {args.threshold}, "
