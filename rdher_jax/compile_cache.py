@@ -75,6 +75,26 @@ def cache_dir(root: str | Path | None = None) -> Path:
     return Path(root if root is not None else default_root()) / f"xla-{host_key()}"
 
 
+def repair(path: Path) -> int:
+    """Give every entry of ``path`` that lacks its access-time file one (its mtime); returns how
+    many. JAX writes an entry's ``-cache`` file, then its ``-atime`` file, and its eviction reads
+    the ``-atime`` of every entry: one process killed between the two writes (or a cache filled
+    with eviction off) would make every later write to the directory fail."""
+    import filelock
+
+    fixed = 0
+    try:
+        with filelock.FileLock(path / ".lockfile", timeout=10):  # JAX's own lock on the dir
+            for entry in path.glob("*-cache"):
+                atime = entry.with_name(entry.name.removesuffix("-cache") + "-atime")
+                if not atime.exists():
+                    atime.write_bytes(entry.stat().st_mtime_ns.to_bytes(8, "little"))
+                    fixed += 1
+    except (OSError, filelock.Timeout):  # a busy or read-only cache: JAX copes or warns
+        pass
+    return fixed
+
+
 def configure(enabled: bool, root: str | Path | None = None,
               min_compile_secs: float = MIN_COMPILE_SECS) -> Path | None:
     """Point JAX's persistent cache at this host's directory (or turn it off); returns the
@@ -89,6 +109,8 @@ def configure(enabled: bool, root: str | Path | None = None,
             path.mkdir(parents=True, exist_ok=True)
         except OSError:  # an unwritable home: run without the cache rather than fail
             path = None
+        else:
+            repair(path)
     jax.config.update("jax_enable_compilation_cache", path is not None)
     jax.config.update("jax_compilation_cache_dir", None if path is None else str(path))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_secs))

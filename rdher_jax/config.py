@@ -52,6 +52,8 @@ RESUMABLE_KEYS: frozenset[str] = frozenset(
         "tensorboard",
         "progress",
         "compile_cache",
+        "stop_success",
+        "stop_window",
     }
 )
 # The fields that reach the compiled program only as traced values (``program.Hyper``), so runs
@@ -232,6 +234,11 @@ class Config:
     )
     resume: str | None = _f(None, "run directory to continue from its latest checkpoint")
     checkpoint_every: int = _f(1, "epochs between checkpoints")
+    stop_success: float | None = _f(
+        None, "stop early once the mean test success of the last stop_window epochs reaches "
+        "this (a sweep: once every run's does), after saving a checkpoint; null: run every epoch"
+    )
+    stop_window: int = _f(3, "epochs averaged for stop_success")
     tensorboard: bool = _f(False, "also write TensorBoard scalars (needs tensorboardX)")
     progress: bool = _f(True, "show a progress bar")
     compile_cache: bool = _f(
@@ -329,6 +336,7 @@ def validate(cfg: Config) -> Config:
         "policy_delay",
         "n_step",
         "episode_length",
+        "stop_window",
     )
     for name in positive:
         v = getattr(cfg, name)
@@ -377,6 +385,9 @@ def validate(cfg: Config) -> Config:
                f"goal_speed applies to the moving tasks ({', '.join(MOVING_TASKS)}), not "
                f"{cfg.env}")
         _check(cfg.goal_speed >= 0, f"goal_speed must be >= 0, got {cfg.goal_speed}")
+    if cfg.stop_success is not None:
+        _check(math.isfinite(cfg.stop_success) and 0.0 < cfg.stop_success <= 1.0,
+               f"stop_success must be in (0, 1] or null, got {cfg.stop_success}")
     _check(cfg.cher_growth >= 1.0, f"cher_growth must be >= 1, got {cfg.cher_growth}")
     if cfg.cher_candidates is not None:
         _check(cfg.cher_candidates >= cfg.batch_size,

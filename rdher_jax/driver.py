@@ -464,6 +464,18 @@ def is_checkpoint_epoch(cfg: Config, epoch: int) -> bool:
     return epoch % cfg.checkpoint_every == 0 or epoch == cfg.epochs
 
 
+def reached_stop(cfg: Config, recent: Sequence[Sequence[float]], live: Iterable[int]) -> bool:
+    """Whether ``stop_success`` is met: every live run's last ``stop_window`` test successes
+    (``recent[i]``, oldest first) are all there and average at least ``stop_success``."""
+    if cfg.stop_success is None:
+        return False
+    live = list(live)
+    return bool(live) and all(
+        len(recent[i]) >= cfg.stop_window
+        and float(np.mean(recent[i][-cfg.stop_window:])) >= cfg.stop_success
+        for i in live)
+
+
 def plot_title(cfg: Config) -> str:
     lam = "" if (cfg.lambda_r, cfg.lambda_h) == (1.0, 1.0) else (
         f" lambda_r={cfg.lambda_r:g} lambda_h={cfg.lambda_h:g}")
@@ -683,6 +695,7 @@ def drive(plan: Plan, argv: Sequence[str] = (), prog: str = "", log=print,
         return host if plan.sweep else jax.tree.map(lambda x: x[0], host)
 
     start, wall0, diverged = 0, 0.0, {}
+    recent: list[list[float]] = [[] for _ in runs]  # each run's last test successes (stop_*)
     if plan.resume and ckpt.latest_epoch() is not None:
         template = batch.abstract(ts) if batch.multi_process else saved(ts)
         start, state, meta = restore_or_refuse(ckpt, template, plan.out_dir)
@@ -700,6 +713,10 @@ def drive(plan: Plan, argv: Sequence[str] = (), prog: str = "", log=print,
             best = [float(b) for b in (bests if plan.sweep else [bests])]
             diverged = {k: int(v) for k, v in meta.get("diverged", {}).items()
                         if int(v) <= start}
+            saved_recent = meta.get("recent_success")  # absent before stop_success existed
+            if saved_recent is not None:
+                recent = [[float(x) for x in r] for r in
+                          (saved_recent if plan.sweep else [saved_recent])]
         except (KeyError, TypeError, ValueError, AttributeError, IndexError) as e:
             raise ConfigError(f"cannot resume {plan.out_dir}: its checkpoint's metadata is "
                               f"damaged ({type(e).__name__}: {e})") from None
@@ -734,7 +751,14 @@ def drive(plan: Plan, argv: Sequence[str] = (), prog: str = "", log=print,
                    dynamic_ncols=True, file=sys.stderr)
     t_start = time.perf_counter() - wall0
     last_rows: list[dict] = [{} for _ in runs]
+    def live() -> list[int]:
+        return [i for i, name in enumerate(names) if name not in diverged]
+
+    stopped = None  # the epoch after which stop_success was met
     for epoch in range(start, cfg.epochs):
+        if reached_stop(cfg, recent, live()):  # a resumed run that had already met it
+            stopped = epoch
+            break
         t0 = time.perf_counter()
         ts, m = batch.epoch(ts, hps)
         m = batch.host(m)  # every run's, on every process
@@ -764,6 +788,7 @@ def drive(plan: Plan, argv: Sequence[str] = (), prog: str = "", log=print,
         tests = []
         for i, row in rows.items():
             best[i] = max(best[i], float(row["test_success"]))
+            recent[i] = (recent[i] + [float(row["test_success"])])[-cfg.stop_window:]
             if i in outs:
                 outs[i].record(row, lambda i=i, pol=pol: _row_of(pol, i))
             last_rows[i] = row
@@ -772,11 +797,14 @@ def drive(plan: Plan, argv: Sequence[str] = (), prog: str = "", log=print,
             raise TrainingDiverged(
                 f"the losses of every run became non-finite (the last in epoch {epoch + 1}); "
                 f"stopped. {last_good_checkpoint(ckpt)}")
-        if is_checkpoint_epoch(cfg, epoch + 1):
+        stop = reached_stop(cfg, recent, live())
+        if stop or is_checkpoint_epoch(cfg, epoch + 1):
             bests = list(best)
             meta = ({"best_success": bests, "wall_time": round(wall, 3),
-                     "diverged": diverged, "runs": names} if plan.sweep else
-                    {"best_success": bests[0], "wall_time": round(wall, 3)})
+                     "diverged": diverged, "runs": names, "recent_success": recent}
+                    if plan.sweep else
+                    {"best_success": bests[0], "wall_time": round(wall, 3),
+                     "recent_success": recent[0]})
             ckpt.save_latest(epoch + 1, saved(ts), meta)
         if plan.sweep and main:
             summary.write(plan, diverged)
@@ -788,8 +816,16 @@ def drive(plan: Plan, argv: Sequence[str] = (), prog: str = "", log=print,
                     post["best"] = f"{max(tests):.2f}"
                 bar.set_postfix(post)
             bar.update(1)
+        if stop:
+            stopped = epoch + 1
+            break
     if bar is not None:
         bar.close()
+    if stopped is not None and main:
+        log(f"stopped after epoch {stopped}: the mean test success of the last "
+            f"{cfg.stop_window} epochs reached stop_success={cfg.stop_success:g}"
+            + (" on every run" if plan.sweep else "")
+            + ("; resume with stop_success=null to train on" if stopped == start else ""))
     for i, o in outs.items():
         if not last_rows[i]:
             done = o.csv.rows()
@@ -800,7 +836,8 @@ def drive(plan: Plan, argv: Sequence[str] = (), prog: str = "", log=print,
     distributed.barrier("rdher_jax.drive.done")
     result = {"out_dir": str(plan.out_dir), "names": names, "rows": last_rows,
               "best": best,
-              "diverged": diverged, "program": batch.describe(), "local": mine}
+              "diverged": diverged, "program": batch.describe(), "local": mine,
+              "stopped": stopped}
     if plan.sweep:
         result["summary"] = summary.collect(plan, diverged) if main else ([], [])
     return result

@@ -60,7 +60,7 @@ def parse(argv: list[str]) -> tuple[Path, dict]:
 # Keys of a run's config that do not change the evaluation program: the runs of one sweep (seeds,
 # λ pairs) share one build and one compilation (experiments test every run of a sweep).
 _PER_RUN_KEYS = ("seed", "lambda_r", "lambda_h", "epochs", "run_dir", "resume",
-                 "checkpoint_every", "tensorboard", "progress")
+                 "checkpoint_every", "tensorboard", "progress", "stop_success", "stop_window")
 _PROGRAMS: dict[str, tuple] = {}
 
 

@@ -1,5 +1,7 @@
 """The persistent compilation cache (rdher_jax.compile_cache): keyed by host and config."""
 
+import warnings
+
 import jax
 import pytest
 
@@ -97,3 +99,30 @@ def test_callback_programs_are_not_written(cache):
     assert entries(cache, "jit_init")  # (the cache is on)
     jax.jit(program.collect).lower(ts, hp).compile()
     assert entries(cache, "jit_collect") == []
+
+
+def test_an_entry_without_its_access_time_does_not_break_later_writes(tmp_path, monkeypatch):
+    """JAX's eviction reads every entry's -atime file; an entry left without one (its writer
+    killed between the two files) made every later write fail. configure() repairs it."""
+    root = tmp_path / "root"
+    orphan = compile_cache.cache_dir(root) / "jit_old-0123-cache"
+    orphan.parent.mkdir(parents=True)
+    orphan.write_bytes(b"x" * 10)
+    monkeypatch.setenv(compile_cache.ENV_VAR, str(root))
+    before = {k: getattr(jax.config, k) for k in (
+        "jax_enable_compilation_cache", "jax_compilation_cache_dir",
+        "jax_persistent_cache_min_compile_time_secs", "jax_compilation_cache_max_size")}
+    try:
+        path = compile_cache.configure(True, min_compile_secs=0.0)
+        atime = path / "jit_old-0123-atime"
+        assert atime.exists()
+        assert int.from_bytes(atime.read_bytes(), "little") == orphan.stat().st_mtime_ns
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # JAX warns, not raises, when a write fails
+            compile_init(["hidden=20"])
+        assert len(entries(path, "jit_init")) == 1
+    finally:
+        from jax.experimental.compilation_cache import compilation_cache as cc
+        for k, v in before.items():
+            jax.config.update(k, v)
+        cc.reset_cache()

@@ -16,7 +16,7 @@ import pytest
 from rdher_jax import driver
 from rdher_jax import train as train_mod
 from rdher_jax.checkpoint import Checkpointer
-from rdher_jax.config import Config, resolve
+from rdher_jax.config import Config, parse_args, resolve
 
 TINY = dict(env="FetchReach", n_cycles=2, n_batches=4, batch_size=32, buffer_size=2000,
             num_envs=2, n_test_rollouts=2, hidden=32, progress=False)
@@ -109,6 +109,58 @@ def test_nan_loss_stops_run_and_keeps_last_checkpoint(tmp_path, monkeypatch):
         train_mod.train(cfg)
     assert len(read_csv(Path(cfg.run_dir) / "metrics.csv")) == 1
     assert Checkpointer(cfg.run_dir, read_only=True).latest_epoch() == 1
+
+
+def test_stop_success_stops_after_the_window_and_resumes(tmp_path, monkeypatch):
+    """stop_success ends a run once the trailing mean of stop_window test successes reaches it,
+    with a checkpoint at that epoch even between checkpoint_every epochs; resuming it trains
+    nothing more until stop_success=null."""
+    schedule = jax.numpy.array([0.0, 0.5, 1.0, 0.75, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    real_build = driver.build
+
+    def build(cfg):
+        env, trainer = real_build(cfg)
+
+        def epoch(ts, hp):
+            ts, m = trainer.epoch(ts, hp)  # ts.epoch: the epochs done, this one included
+            return ts, m.replace(test_success=schedule[ts.epoch - 1])
+
+        return env, trainer._replace(epoch=epoch)
+
+    monkeypatch.setattr(driver, "build", build)
+    monkeypatch.setattr(driver, "_LAST_PROGRAM", {})
+    logs = []
+    cfg = tiny_cfg(tmp_path, epochs=9, checkpoint_every=4, stop_success=0.875, stop_window=2)
+    out = train_mod.train(cfg, log=logs.append)
+    # Trailing means of 2: 0.25, 0.75, 0.875 (epoch 4) -> stop after epoch 4.
+    run = Path(cfg.run_dir)
+    assert [float(r["test_success"]) for r in read_csv(run / "metrics.csv")] == \
+        [0.0, 0.5, 1.0, 0.75]
+    assert float(out["row"]["test_success"]) == 0.75
+    assert any("stopped after epoch 4" in m for m in logs), logs
+    assert Checkpointer(run, read_only=True).latest_epoch() == 4
+
+    def resume(*extra):
+        argv = [f"resume={run}", *extra]
+        return train_mod.train(train_mod.load_resume_config(parse_args(argv), argv), argv,
+                               log=logs.append)
+
+    resume()  # still met: nothing more to train
+    assert len(read_csv(run / "metrics.csv")) == 4
+    assert "resume with stop_success=null" in logs[-1]
+    resume("stop_success=null", "epochs=6")
+    assert [float(r["test_success"]) for r in read_csv(run / "metrics.csv")] == \
+        [0.0, 0.5, 1.0, 0.75, 1.0, 0.0]
+
+
+def test_reached_stop_needs_every_live_run():
+    cfg = Config(stop_success=0.9, stop_window=3)
+    assert not driver.reached_stop(Config(), [[1.0] * 3], [0])  # stop_success=null: never
+    assert not driver.reached_stop(cfg, [[1.0, 1.0]], [0])  # fewer epochs than the window
+    assert driver.reached_stop(cfg, [[0.8, 0.9, 1.0]], [0])
+    assert not driver.reached_stop(cfg, [[0.8, 0.9, 1.0], [1.0, 1.0, 0.6]], [0, 1])
+    assert driver.reached_stop(cfg, [[0.8, 0.9, 1.0], [1.0, 1.0, 0.6]], [0])  # run 1 diverged
+    assert not driver.reached_stop(cfg, [[1.0] * 3], [])  # every run diverged
 
 
 def test_cli_errors_exit_2_with_one_line():
