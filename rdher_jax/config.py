@@ -593,13 +593,16 @@ def continue_config(saved: Config, raw: Mapping[str, str], directory: str | Path
 
 
 def wants_overlap(argv: Sequence[str]) -> bool:
-    """Whether a command line asks for ``overlap=true``, or resumes a run or sweep that has
-    it: read before JAX starts, which must then be given a second host device. Nothing here
-    raises; the real parse reports bad input."""
+    """Whether a command line asks for ``overlap=true`` (itself or through its preset), or
+    resumes a run or sweep that has it: read before JAX starts, which must then be given a
+    second host device. Nothing here raises; the real parse reports bad input."""
     import yaml
 
     vals = dict(tok.split("=", 1) for tok in argv if "=" in tok)
-    if vals.get("overlap", "").strip().lower() in ("true", "1", "yes", "on"):
+    if "overlap" in vals:
+        return vals["overlap"].strip().lower() in ("true", "1", "yes", "on")
+    preset = PRESETS.get(vals.get("preset", "").strip())
+    if preset is not None and preset.values.get("overlap") is True:
         return True
     if not vals.get("resume"):
         return False

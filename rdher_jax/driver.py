@@ -153,6 +153,15 @@ def request_host_devices(n: int = 2) -> None:
         pass  # the backend is up already: overlap_devices() gives the error
 
 
+def _preset_overlap_hint(cfg: Config) -> str:
+    from .config import PRESETS
+
+    preset = PRESETS.get(cfg.preset or "")
+    if preset is not None and preset.values.get("overlap") is True:
+        return f" (preset={cfg.preset} sets overlap=true for a CPU: add overlap=false)"
+    return ""
+
+
 def overlap_devices(devices: Sequence[Any] | None) -> tuple[list[Any], Any]:
     """(the learner's device, the collecting device) of an ``overlap=true`` program."""
     devices = list(devices or jax.devices())
@@ -387,7 +396,10 @@ def batch_for(runs: Sequence[Config], devices: Sequence[Any] | None = None,
     """
     overlap = None
     if runs[0].overlap:
-        devices, collect_device = overlap_devices(devices)
+        try:
+            devices, collect_device = overlap_devices(devices)
+        except ConfigError as e:
+            raise ConfigError(f"{e}{_preset_overlap_hint(runs[0])}") from None
         overlap = (runs[0].n_cycles, collect_device)
     devices = list(devices or jax.devices())
     default = Config()
@@ -407,7 +419,7 @@ def batch_for(runs: Sequence[Config], devices: Sequence[Any] | None = None,
         env, program = build(runs[0])
         if overlap is not None and env.backend.name != "mujoco":
             raise ConfigError(f"overlap=true needs backend=mujoco (the native physics), not "
-                              f"{env.backend.name}")
+                              f"{env.backend.name}{_preset_overlap_hint(runs[0])}")
         _LAST_PROGRAM.update(key=key, value=(env, program, RunBatch(
             program, len(runs), devices, vmapped, overlap)))
     return _LAST_PROGRAM["value"]

@@ -313,3 +313,21 @@ def from_yaml_text(text: str) -> Config:
         p = Path(d) / "config.yaml"
         p.write_text(text)
         return from_yaml(p)
+
+
+def test_wants_overlap_reads_the_command_line_and_its_preset(tmp_path, monkeypatch):
+    from rdher_jax import config as config_mod
+
+    monkeypatch.setitem(config_mod.PRESETS, "ov", config_mod.Preset("test", {"overlap": True}))
+    monkeypatch.setitem(config_mod.PRESETS, "seq", config_mod.Preset("test", {"n_batches": 4}))
+    wants = config_mod.wants_overlap
+    assert wants(["overlap=true"]) and wants(["overlap=True", "env=FetchPush"])
+    assert not wants([]) and not wants(["overlap=false"])
+    assert wants(["preset=ov"]) and not wants(["preset=ov", "overlap=false"])
+    assert not wants(["preset=seq"]) and not wants(["preset=nosuch"])
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.yaml").write_text("overlap: true\n")
+    assert wants([f"resume={run}"])
+    (run / "config.yaml").write_text("overlap: false\n")
+    assert not wants([f"resume={run}"])

@@ -136,3 +136,20 @@ def test_split_init_is_init_overlap(vmapped):
         print("ok")
     """)
     assert out.strip().endswith("ok")
+
+
+def test_a_preset_that_sets_overlap_names_itself_in_the_error(monkeypatch):
+    """On devices overlap cannot use (here: one CPU device; on a GPU: not a CPU), a run whose
+    preset turned overlap on is told which key to add."""
+    import jax
+
+    from rdher_jax import config as config_mod
+    from rdher_jax.driver import batch_for
+
+    if len(jax.devices()) >= 2:
+        pytest.skip("this process has two devices")
+    monkeypatch.setitem(config_mod.PRESETS, "ov", config_mod.Preset("test", {"overlap": True}))
+    cfg = config_mod.resolve(parse_args(["preset=ov", "env=FetchReach"]))
+    with pytest.raises(ConfigError, match=r"second host device.*preset=ov sets overlap=true.*"
+                       r"add overlap=false"):
+        batch_for([cfg])
