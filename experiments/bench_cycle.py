@@ -202,7 +202,9 @@ def main() -> None:
         f"# Where a {args.env} training cycle's time goes",
         "",
         f"`python experiments/bench_cycle.py --env {args.env} --preset {args.preset} --repeats "
-        f"{args.repeats}{''.join(' --variants ' + v for v in args.variants)}` on "
+        f"{args.repeats}"
+        + (f" --overlap-cycles {args.overlap_cycles}" if args.overlap_cycles != 10 else "")
+        + (" --variants " + " ".join(args.variants) if args.variants else "") + "` on "
         f"{platform.machine()} ({platform.processor() or 'CPU'}), "
         f"{jax.device_count()} JAX device(s); medians of {args.repeats} interleaved repeats. "
         "'rollout' is the cycle at n_batches=1 (rollout, store, normaliser, one update); "

@@ -104,18 +104,20 @@ REACH_CPU = Budget(5, {"epochs": 5, "n_cycles": 10, **PAPER_LEARNER},
 # and every sweep resumes where it stopped, so they can be finished over several sittings.
 # dher_fraction=0.8 written out: the committed FetchPush rows were run when preset=fast kept the
 # authors' share (it now takes 0.2), so that these sweeps resume and rerun as they ran.
-PUSH_CPU = Budget(3, {"preset": "fast", "dher_fraction": 0.8, "epochs": 200},
-                  "preset=fast with the authors' dher_fraction=0.8, 200 epochs of 50 one-episode "
-                  "cycles (500,000 env steps per run)")
+# overlap=false likewise: preset=fast took overlap=true after these rows (and the moving-goal
+# ones below) were run, sequentially.
+PUSH_CPU = Budget(3, {"preset": "fast", "dher_fraction": 0.8, "overlap": False, "epochs": 200},
+                  "preset=fast with the authors' dher_fraction=0.8, sequential (overlap=false), "
+                  "200 epochs of 50 one-episode cycles (500,000 env steps per run)")
 # The moving-goal tasks (experiments/moving_goals.py). FetchReachMoving: the paper's learner,
 # where HER and DHER both reach 1.0 within 10 epochs. FetchPushMoving: preset=fast for 250,000
 # env steps; a setting of 3 seeds took 1 h 44 min (HER) and 2 h 7 min (DHER, share 0.2) of one
 # core (run_info.json in experiments/results/moving/cpu/).
 REACH_MOVING_CPU = Budget(3, {"epochs": 8, "n_cycles": 10, **PAPER_LEARNER},
                           "the paper's learner; 8 epochs of 10 cycles (8,000 env steps per run)")
-PUSH_MOVING_CPU = Budget(3, {"preset": "fast", "epochs": 100},
-                         "preset=fast, 100 epochs of 50 one-episode cycles (250,000 env steps per "
-                         "run)")
+PUSH_MOVING_CPU = Budget(3, {"preset": "fast", "overlap": False, "epochs": 100},
+                         "preset=fast, sequential (overlap=false), 100 epochs of 50 one-episode "
+                         "cycles (250,000 env steps per run)")
 
 PROFILES: dict[str, Profile] = {
     "tiny": Profile("FetchReach smoke test: 2 epochs of 2 cycles, tiny networks, 2 seeds",

@@ -19,6 +19,7 @@ FAST = {
     "policy_delay": 2,
     "terminal": "exact",
     "dher_fraction": 0.2,
+    "overlap": True,
 }
 
 
