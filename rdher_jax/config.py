@@ -596,6 +596,12 @@ def continue_config(saved: Config, raw: Mapping[str, str], directory: str | Path
     return new
 
 
+def preset_sets_overlap(name: str | None) -> bool:
+    """Whether preset ``name`` (None or unknown: no) turns ``overlap`` on."""
+    preset = PRESETS.get((name or "").strip())
+    return preset is not None and preset.values.get("overlap") is True
+
+
 def wants_overlap(argv: Sequence[str]) -> bool:
     """Whether a command line asks for ``overlap=true`` (itself or through its preset), or
     resumes a run or sweep that has it: read before JAX starts, which must then be given a
@@ -605,8 +611,7 @@ def wants_overlap(argv: Sequence[str]) -> bool:
     vals = dict(tok.split("=", 1) for tok in argv if "=" in tok)
     if "overlap" in vals:
         return vals["overlap"].strip().lower() in ("true", "1", "yes", "on")
-    preset = PRESETS.get(vals.get("preset", "").strip())
-    if preset is not None and preset.values.get("overlap") is True:
+    if preset_sets_overlap(vals.get("preset")):
         return True
     if not vals.get("resume"):
         return False

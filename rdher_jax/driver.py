@@ -50,7 +50,14 @@ import numpy as np
 
 from . import summary
 from .checkpoint import Checkpointer
-from .config import RESUMABLE_KEYS, TRACED_KEYS, Config, ConfigError, to_yaml
+from .config import (
+    RESUMABLE_KEYS,
+    TRACED_KEYS,
+    Config,
+    ConfigError,
+    preset_sets_overlap,
+    to_yaml,
+)
 from .runlog import (
     MetricsCSV,
     TBWriter,
@@ -154,10 +161,7 @@ def request_host_devices(n: int = 2) -> None:
 
 
 def _preset_overlap_hint(cfg: Config) -> str:
-    from .config import PRESETS
-
-    preset = PRESETS.get(cfg.preset or "")
-    if preset is not None and preset.values.get("overlap") is True:
+    if preset_sets_overlap(cfg.preset):
         return f" (preset={cfg.preset} sets overlap=true for a CPU: add overlap=false)"
     return ""
 
@@ -764,6 +768,7 @@ def drive(plan: Plan, argv: Sequence[str] = (), prog: str = "", log=print,
                    dynamic_ncols=True, file=sys.stderr)
     t_start = time.perf_counter() - wall0
     last_rows: list[dict] = [{} for _ in runs]
+
     def live() -> list[int]:
         return [i for i, name in enumerate(names) if name not in diverged]
 
@@ -849,8 +854,7 @@ def drive(plan: Plan, argv: Sequence[str] = (), prog: str = "", log=print,
     distributed.barrier("rdher_jax.drive.done")
     result = {"out_dir": str(plan.out_dir), "names": names, "rows": last_rows,
               "best": best,
-              "diverged": diverged, "program": batch.describe(), "local": mine,
-              "stopped": stopped}
+              "diverged": diverged, "program": batch.describe(), "local": mine}
     if plan.sweep:
         result["summary"] = summary.collect(plan, diverged) if main else ([], [])
     return result
