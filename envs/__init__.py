@@ -39,7 +39,7 @@ def default_backend() -> str:
 def make_env(name: str, backend: str | None = None, scene: str | None = None,
              auto_reset: bool = True, num_threads: int | None = None,
              goal_speed: float | None = None,
-             episode_length: int | None = None) -> FetchEnv:
+             episode_length: int | None = None, physics_call: str = "ffi") -> FetchEnv:
     """Build a Fetch task.
 
     Args:
@@ -53,6 +53,9 @@ def make_env(name: str, backend: str | None = None, scene: str | None = None,
       goal_speed: moving tasks only: metres per step the goal moves (None: the task's, 0.011
         for FetchReachMoving, 0.005 for FetchPushMoving; 0 keeps the goal still).
       episode_length: env steps per episode (None: the task's, 50).
+      physics_call: native backend only: ``"ffi"`` (XLA FFI handlers, so compiled programs
+        can be cached; built once per machine, falling back to the callback with a warning)
+        or ``"callback"`` (``jax.pure_callback``). Bit-identical results.
     Returns:
       A ``FetchEnv`` with pure ``reset(key)`` and ``step(state, action)``.
     """
@@ -73,7 +76,7 @@ def make_env(name: str, backend: str | None = None, scene: str | None = None,
     if backend == "mujoco":
         from .native import NativeBackend
 
-        physics = NativeBackend(setup, num_threads=num_threads)
+        physics = NativeBackend(setup, num_threads=num_threads, physics_call=physics_call)
     else:
         from .mjx_backend import MjxBackend
 

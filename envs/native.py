@@ -57,7 +57,7 @@ class NativeBackend:
 
     name = "mujoco"
 
-    def __init__(self, setup: Setup, num_threads: int | None = None):
+    def __init__(self, setup: Setup, num_threads: int | None = None, physics_call: str = "ffi"):
         import mjbatch  # noqa: F401  (fail early with a clear ImportError)
 
         self.setup = setup
@@ -74,6 +74,16 @@ class NativeBackend:
         qp, qv = self.off["QPOS"], self.off["QVEL"]
         self._qpos = slice(qp, qp + m.nq)
         self._qvel = slice(qv, qv + m.nv)
+        if physics_call not in ("ffi", "callback"):
+            raise ValueError(f"physics_call must be 'ffi' or 'callback', got {physics_call!r}")
+        # The same step and reset as XLA FFI calls (cacheable programs, bit-identical results);
+        # None: the pure_callback below (asked for, or the handlers could not be built).
+        from . import native_ffi
+
+        # (The handlers are registered for XLA:CPU; where JAX's default device is an
+        # accelerator the callback, which runs anywhere, stays.)
+        use_ffi = physics_call == "ffi" and jax.default_backend() == "cpu"
+        self.ffi_task = native_ffi.register(self) if use_ffi else None
 
     # ------------------------------------------------------------------ host side
     def _batch(self, n: int):
@@ -206,6 +216,13 @@ class NativeBackend:
         )
 
     def reset(self, qpos: jax.Array, qvel: jax.Array) -> tuple[NativeState, jax.Array]:
+        if self.ffi_task is not None:
+            from . import native_ffi
+
+            bits, raw = native_ffi.reset_call(
+                self.ffi_task, self._shapes(qpos.shape[:-1]),
+                jnp.asarray(qpos, jnp.float32), jnp.asarray(qvel, jnp.float32))
+            return NativeState(bits), raw
         bits, raw = jax.pure_callback(
             self.host_reset, self._shapes(qpos.shape[:-1]), qpos, qvel,
             vmap_method="broadcast_all",
@@ -220,6 +237,13 @@ class NativeBackend:
         return NativeState(jnp.asarray(bits)), jnp.asarray(raw)
 
     def step(self, state: NativeState, delta: jax.Array, grip: jax.Array):
+        if self.ffi_task is not None:
+            from . import native_ffi
+
+            bits, raw = native_ffi.step_call(
+                self.ffi_task, self._shapes(delta.shape[:-1]), state.bits,
+                jnp.asarray(delta, jnp.float32), jnp.asarray(grip, jnp.float32))
+            return NativeState(bits), raw
         bits, raw = jax.pure_callback(
             self.host_step, self._shapes(delta.shape[:-1]), state.bits, delta, grip,
             vmap_method="broadcast_all",

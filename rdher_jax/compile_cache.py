@@ -21,11 +21,10 @@ callback, so what is cached there is what runs without it: the trainer's ``init`
 from __future__ import annotations
 
 import hashlib
+import importlib.metadata
 import os
 import platform
 from pathlib import Path
-
-import jax
 
 ENV_VAR = "RDHER_JAX_CACHE_DIR"
 # Programs that compile faster than this are not written: reading one back costs about as much.
@@ -64,10 +63,11 @@ def _cpuinfo() -> tuple[str, str]:
 
 def host_key(cpuinfo: tuple[str, str] | None = None) -> str:
     """16 hex digits naming what a cached CPU executable depends on beyond JAX's own key."""
-    import jaxlib
-
+    # The installed versions, read without importing JAX (rdher_jax.ffi_build keys its library
+    # with this before JAX is imported).
+    version = importlib.metadata.version
     model, flags = cpuinfo if cpuinfo is not None else _cpuinfo()
-    parts = [platform.machine(), model, flags, jax.__version__, jaxlib.__version__]
+    parts = [platform.machine(), model, flags, version("jax"), version("jaxlib")]
     return hashlib.sha256("\n".join(parts).encode()).hexdigest()[:16]
 
 
@@ -100,6 +100,7 @@ def configure(enabled: bool, root: str | Path | None = None,
     """Point JAX's persistent cache at this host's directory (or turn it off); returns the
     directory. Takes effect for every later compilation of this process, also after earlier
     ones (the cache's once-per-process check is reset)."""
+    import jax
     from jax.experimental.compilation_cache import compilation_cache as cc
 
     path = None

@@ -38,6 +38,7 @@ BACKENDS: tuple[str, ...] = ("auto", "mujoco", "mjx")
 SCENES: tuple[str, ...] = ("auto", "original", "mjx")
 TERMINAL_RULES: tuple[str, ...] = ("none", "success", "exact")
 COMPUTE_DTYPES: tuple[str, ...] = ("float32", "bfloat16")
+PHYSICS_CALLS: tuple[str, ...] = ("ffi", "callback")
 
 # Fields whose value may differ between a run and its continuation: they change neither the
 # learning problem nor the shapes of what the checkpoint holds.
@@ -52,6 +53,7 @@ RESUMABLE_KEYS: frozenset[str] = frozenset(
         "tensorboard",
         "progress",
         "compile_cache",
+        "physics_call",
         "stop_success",
         "stop_window",
     }
@@ -248,7 +250,13 @@ class Config:
     compile_cache: bool = _f(
         True, "keep compiled programs on disk for later processes (JAX's persistent cache, "
         "one directory per CPU kind and JAX version under $RDHER_JAX_CACHE_DIR or "
-        "~/.cache/rdher_jax); programs holding the native physics callback are not cacheable"
+        "~/.cache/rdher_jax)"
+    )
+    physics_call: str = _f(
+        "ffi", "how jitted code calls the native physics (backend=mujoco): ffi (XLA FFI "
+        "handlers, built once per machine with the C++ compiler; programs holding them are "
+        "cacheable) or callback (jax.pure_callback, never cached); the same results bit for "
+        "bit, and ffi falls back to callback with a warning where it cannot be built"
     )
 
 
@@ -318,6 +326,7 @@ def validate(cfg: Config) -> Config:
     _one_of("scene", cfg.scene, SCENES)
     _one_of("terminal", cfg.terminal, TERMINAL_RULES)
     _one_of("compute_dtype", cfg.compute_dtype, COMPUTE_DTYPES)
+    _one_of("physics_call", cfg.physics_call, PHYSICS_CALLS)
     _check(cfg.terminal != "exact" or cfg.n_step == 1, "terminal=exact needs n_step=1")
     if cfg.preset is not None:
         _one_of("preset", cfg.preset, tuple(PRESETS))

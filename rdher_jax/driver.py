@@ -98,7 +98,8 @@ def build(cfg: Config):
 
     backend, scene = resolve_backend(cfg)
     env = make_env(cfg.env, backend=backend, scene=scene, auto_reset=False,
-                   goal_speed=cfg.goal_speed, episode_length=cfg.episode_length)
+                   goal_speed=cfg.goal_speed, episode_length=cfg.episode_length,
+                   physics_call=cfg.physics_call)
     return env, make_program(cfg, env)
 
 

@@ -19,15 +19,26 @@ from .config import (
     resume_config,
     wants_overlap,
 )
-from .driver import Plan, TrainingDiverged, drive, request_host_devices
 from .runlog import check_resume_dir
 
 PROG = "python -m rdher_jax.train"
 
 
+def __getattr__(name: str):
+    # The driver (and with it JAX) is imported lazily, so ``main`` can start work before it;
+    # its names stay reachable from here.
+    if name in ("Plan", "TrainingDiverged", "drive", "request_host_devices"):
+        from . import driver
+
+        return getattr(driver, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
 def train(cfg: Config, argv: Sequence[str] | None = None, log=print) -> dict:
     """Run (or continue, with ``cfg.resume``) one training run; returns its final metrics row,
     its best test success and its directory."""
+    from .driver import Plan, drive
+
     out = drive(Plan.single(cfg), argv or [], prog=PROG, log=log)
     return {"row": out["rows"][0], "best_success": out["best"][0], "run_dir": out["out_dir"]}
 
@@ -48,6 +59,13 @@ def load_resume_config(cfg: Config, argv: Sequence[str]) -> Config:
 @main_guard
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    # On a machine that never ran the project, compile the native physics' FFI handlers while
+    # JAX is imported (rdher_jax.ffi_build); nothing to do afterwards.
+    from . import ffi_build
+
+    ffi_build.start()
+    from .driver import TrainingDiverged, request_host_devices
+
     if wants_overlap(argv):  # before anything starts JAX's backend
         request_host_devices(2)
     cfg = parse_args(argv, prog=PROG)

@@ -88,17 +88,20 @@ def test_off_writes_nothing(tmp_path, monkeypatch, cache):
     assert entries(cache) == []
 
 
-def test_callback_programs_are_not_written(cache):
-    """The native backend's rollout holds a host callback: JAX refuses to cache it (and so
-    never loads one process's callback pointer into another)."""
+@pytest.mark.parametrize("call", ["callback", "ffi"])
+def test_only_ffi_physics_programs_are_written(cache, call):
+    """With ``physics_call=callback`` the native backend's rollout holds a host callback: JAX
+    refuses to cache it (and so never loads one process's callback pointer into another).
+    The FFI handlers are named, not pointed to: that rollout is written (and another process
+    loads it: tests/test_native_ffi.py)."""
     jax.clear_caches()
-    cfg = resolve(parse_args(TINY + ["backend=mujoco"]))
+    cfg = resolve(parse_args(TINY + ["backend=mujoco", f"physics_call={call}"]))
     _, program = build(cfg)
     hp = hparams_from_config(cfg)
     ts = jax.jit(program.init)(jax.random.PRNGKey(0), hp)
     assert entries(cache, "jit_init")  # (the cache is on)
     jax.jit(program.collect).lower(ts, hp).compile()
-    assert entries(cache, "jit_collect") == []
+    assert len(entries(cache, "jit_collect")) == (call == "ffi")
 
 
 def test_an_entry_without_its_access_time_does_not_break_later_writes(tmp_path, monkeypatch):
