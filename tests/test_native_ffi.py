@@ -9,9 +9,9 @@ import textwrap
 import jax
 import numpy as np
 import pytest
+from rdher_jax.envs import TASK_NAMES
 
 from rdher_jax import make_env
-from rdher_jax.envs import TASK_NAMES
 
 
 def rollout(env, key, steps=25, batch=3):
@@ -41,8 +41,7 @@ def test_ffi_is_the_callback_bit_for_bit(task):
     assert ffi.backend.ffi_task is not None and cb.backend.ffi_task is None
     a, b = rollout(ffi, jax.random.PRNGKey(3)), rollout(cb, jax.random.PRNGKey(3))
     la, lb = jax.tree.leaves(a), jax.tree.leaves(b)
-    assert len(la) == len(lb)
-    for x, y in zip(la, lb):
+    for x, y in zip(la, lb, strict=True):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
 
