@@ -11,9 +11,11 @@ What it measures:
    FetchPush reference is re-measured between the task blocks; its median over the run is the
    denominator of every ratio (its spread says how much the machine's load moved). Next to it,
    bare mjbatch on all cores over one thread: the parallel CPU this process really got.
-2. The ``mujoco`` backend (mjbatch, one ``jax.pure_callback`` per batched env step), original and
-   MJX-edited scene: ``jit`` of a 50-step ``lax.scan`` over ``vmap(env.step)`` with random
-   actions and ``auto_reset=False``, the episode's reset included; compile time apart.
+2. The ``mujoco`` backend, original and MJX-edited scene: ``jit`` of a 50-step ``lax.scan`` over
+   ``vmap(env.step)`` with random actions and ``auto_reset=False``, the episode's reset
+   included; compile time apart. Both ways of calling the physics, in alternation: one
+   ``jax.pure_callback`` (mjbatch) per batched env step (``physics_call=callback``, what parts 3
+   dissects) and the XLA FFI handlers (``physics_call=ffi``, the default).
 3. The same ``host_reset`` / ``host_step`` calls made from a plain Python loop with numpy arrays
    (no JAX), the ratio jitted / loop, and where the difference goes (FetchPush, original scene):
    ``host_step`` timed inside the callback and in the loop, the time between two callbacks, a
@@ -256,12 +258,15 @@ def repeats_for(batch: int, repeats: int) -> int:
     return 2
 
 
-def bench_native_row(env, timed: Timed, batch: int, repeats: int, min_steps: int) -> dict:
-    """Jitted 50-step rollout vs the same host calls from Python, in alternation."""
+def bench_native_row(env, timed: Timed, batch: int, repeats: int, min_steps: int,
+                     ffi_env=None) -> dict:
+    """Jitted 50-step rollout (``env``: the ``pure_callback`` path) vs the same host calls from
+    Python, and the same rollout through the FFI handlers (``ffi_env``), in alternation."""
     import jax
 
     fn = make_rollout(env)
     compiled, t_lower, t_xla = compile_timed(fn, batch_keys(0, batch))
+    ffi = compile_timed(make_rollout(ffi_env), batch_keys(0, batch)) if ffi_env else None
     n_roll = max(1, math.ceil(min_steps / (EPISODE * batch)))
     reps = repeats_for(batch, repeats)
     keys = [batch_keys(1 + i, batch) for i in range(reps * n_roll + 1)]
@@ -273,7 +278,10 @@ def bench_native_row(env, timed: Timed, batch: int, repeats: int, min_steps: int
         loop.env.backend.host_reset(np.repeat(loop.qpos0[None], batch, 0),
                                     np.repeat(loop.qvel0[None], batch, 0))
     steps = n_roll * EPISODE * batch
-    t = {k: [] for k in ("jit", "loop", "host_jit", "host_loop", "gap_jit", "gap_loop")}
+    t = {k: [] for k in ("jit", "loop", "ffi", "host_jit", "host_loop", "host_ffi", "gap_jit",
+                         "gap_loop", "gap_ffi")}
+    if ffi:
+        jax.block_until_ready(ffi[0](keys[-1]))
     for r in range(reps):
         ks = keys[r * n_roll : (r + 1) * n_roll]
 
@@ -285,7 +293,11 @@ def bench_native_row(env, timed: Timed, batch: int, repeats: int, min_steps: int
             for _ in range(n_roll):
                 loop()
 
-        order = (("jit", run_jit), ("loop", run_loop))
+        def run_ffi(ks=ks):
+            for k in ks:
+                jax.block_until_ready(ffi[0](k))
+
+        order = (("jit", run_jit), ("loop", run_loop)) + ((("ffi", run_ffi),) if ffi else ())
         for name, run in order if r % 2 == 0 else order[::-1]:
             timed.clear()
             t[name].append(timed_call(run))
@@ -293,7 +305,13 @@ def bench_native_row(env, timed: Timed, batch: int, repeats: int, min_steps: int
             t[f"gap_{name}"].append(timed.gap_us())
     jit_s, loop_s = t["jit"], t["loop"]
     pair = [lt / jt for jt, lt in zip(jit_s, loop_s, strict=True)]
+    ffi_row = {} if not ffi else {
+        "ffi_compile_s": ffi[1] + ffi[2],
+        "ffi_rate": steps / median(t["ffi"]),
+        "ffi_over_jit": median([jt / ft for jt, ft in zip(jit_s, t["ffi"], strict=True)]),
+    }
     return {
+        **ffi_row,
         "batch": batch,
         "compile_s": t_lower + t_xla,
         "lower_s": t_lower,
@@ -684,18 +702,22 @@ def write_report(res: dict, path: str) -> str:
         "jit: `jit(lax.scan(50 x vmap(env.step)))` from `vmap(env.reset)`, random actions, "
         "`auto_reset=False`, reset included; compile measured apart. loop: the backend's "
         "`host_reset` + 50 `host_step` calls from Python with numpy arrays. jit/loop: median of "
-        "the ratios of alternating repeats.",
+        "the ratios of alternating repeats. jit is the `pure_callback` path "
+        "(`physics_call=callback`); ffi the same rollout through the XLA FFI handlers (the "
+        "default), timed in the same alternation; ffi/jit: median of the ratios.",
         "",
         "| task | scene | batch | compile s | jit env-steps/s | x gym Push | loop env-steps/s "
-        "| x gym Push | jit/loop |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|",
+        "| x gym Push | jit/loop | ffi env-steps/s | x gym Push | ffi/jit |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for row in res["native"]:
+        ffi = (f"| {fmt_rate(row['ffi_rate'])} | {row['ffi_rate'] / ref:.2f}x "
+               f"| {row['ffi_over_jit']:.2f} |" if "ffi_rate" in row else "| | | |")
         lines.append(
             f"| {row['task']} | {row['scene']} | {row['batch']} | {row['compile_s']:.1f} "
             f"| {fmt_rate(row['jit_rate'])} | {row['jit_rate'] / ref:.2f}x "
             f"| {fmt_rate(row['loop_rate'])} | {row['loop_rate'] / ref:.2f}x "
-            f"| {row['jit_over_loop']:.2f} |"
+            f"| {row['jit_over_loop']:.2f} " + ffi
         )
     push = [r for r in res["native"] if r["task"] == REF_TASK and r["scene"] == "original"]
     if push:
@@ -889,18 +911,22 @@ def main(argv: Sequence[str] | None = None) -> None:
     res["native"], res["breakdown"] = [], {}
     for task in tasks:
         for scene in scenes:
-            env = make_env(task, backend="mujoco", scene=scene, auto_reset=False)
+            env = make_env(task, backend="mujoco", scene=scene, auto_reset=False,
+                           physics_call="callback")
+            ffi_env = make_env(task, backend="mujoco", scene=scene, auto_reset=False,
+                               physics_call="ffi")
             res["native_threads"] = env.backend.num_threads
             timed = Timed(env.backend.host_step)
             env.backend.host_step = timed
             rows = {}
             for batch in push_batches[scene] if task == REF_TASK else batches:
-                row = bench_native_row(env, timed, batch, repeats, min_steps)
+                row = bench_native_row(env, timed, batch, repeats, min_steps, ffi_env)
                 rows[batch] = row
                 res["native"].append({"task": task, "scene": scene, **row})
                 print(f"{task} {scene} B={batch}: compile {row['compile_s']:.1f} s, jit "
                       f"{row['jit_rate']:.0f}, loop {row['loop_rate']:.0f} env-steps/s, "
-                      f"jit/loop {row['jit_over_loop']:.2f}", flush=True)
+                      f"jit/loop {row['jit_over_loop']:.2f}, ffi {row['ffi_rate']:.0f} "
+                      f"({row['ffi_over_jit']:.2f}x jit)", flush=True)
             if task == REF_TASK and scene == "original":
                 for b in bd_batches:
                     if b not in rows:
