@@ -311,7 +311,8 @@ def _budget_lines(data: Sequence[SettingData]) -> list[str]:
     seen = {}
     for s in data:
         b = s.meta.get("budget", {})
-        key = json.dumps(b, sort_keys=True)
+        # The profile's description is said once, in the intro; a reworded one is no new budget.
+        key = json.dumps({k: v for k, v in b.items() if k != "profile_doc"}, sort_keys=True)
         seen.setdefault(s.task, {})[key] = b
     for task, budgets in sorted(seen.items(), key=lambda kv: _task_key(kv[0])):
         for b in budgets.values():
@@ -323,7 +324,9 @@ def _budget_lines(data: Sequence[SettingData]) -> list[str]:
 
 
 def _intro(kind: str, profile: str, data: Sequence[SettingData]) -> list[str]:
-    doc = next((s.meta.get("budget", {}).get("profile_doc") for s in data), "")
+    # The description most of the sweeps were written with (it was reworded over time).
+    docs = [s.meta.get("budget", {}).get("profile_doc") or "" for s in data]
+    doc = max(sorted(set(docs)), key=docs.count) if docs else ""
     commands = sorted({s.meta.get("command", "") for s in data})
     out = [f"# {TITLES[kind]}: profile `{profile}`", "",
            "Written by `python experiments/report.py` from the per-run CSVs and `run_info.json` "
