@@ -94,6 +94,10 @@ def test_only_ffi_physics_programs_are_written(cache, call):
     refuses to cache it (and so never loads one process's callback pointer into another).
     The FFI handlers are named, not pointed to: that rollout is written (and another process
     loads it: tests/test_native_ffi.py)."""
+    from rdher_jax.envs import native_ffi
+
+    if call == "ffi" and native_ffi.library() is None:
+        pytest.skip("the FFI handlers could not be built here")
     jax.clear_caches()
     cfg = resolve(parse_args(TINY + ["backend=mujoco", f"physics_call={call}"]))
     _, program = build(cfg)
