@@ -33,11 +33,13 @@ the others go on. The program stops only when every run has diverged.
 
 from __future__ import annotations
 
+import atexit
 import dataclasses
 import math
 import os
 import platform
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -252,6 +254,44 @@ class OverlapEpoch:
         return ts, metrics
 
 
+class CompiledAhead:
+    """A jitted function that can be compiled on a background thread, from its inputs' shapes,
+    while the caller does other work (``start``); calls then run that executable. On a CPU,
+    compiling is single-threaded: the trainer's epoch program (most of a short run's compile
+    time) compiles on the second core while the first compiles and runs ``init``. Calls whose
+    inputs the executable does not take (another placement, a restored state of another kind)
+    go to the jitted function, which compiles as it would have."""
+
+    def __init__(self, jitted: Any) -> None:
+        self.jitted = jitted
+        self._thread: threading.Thread | None = None
+        self._compiled: Any = None
+
+    def start(self, *abstract_args: Any) -> None:
+        def run() -> None:
+            try:
+                self._compiled = self.jitted.lower(*abstract_args).compile()
+            except Exception:  # noqa: BLE001 - the jitted function compiles (and reports)
+                self._compiled = None
+
+        self._thread = threading.Thread(target=run, name="rdher-compile-ahead", daemon=True)
+        self._thread.start()
+        # A process that ends while XLA compiles on another thread aborts in its teardown
+        # (an error exit right after start): it waits for the compile instead.
+        atexit.register(self._thread.join)
+
+    def __call__(self, *args: Any) -> Any:
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+        if self._compiled is not None:
+            try:
+                return self._compiled(*args)
+            except (TypeError, ValueError):  # checked before anything runs or is donated
+                self._compiled = None
+        return self.jitted(*args)
+
+
 class RunBatch:
     """A program's ``init`` and ``epoch`` over a leading run axis, each one compiled program.
 
@@ -282,7 +322,7 @@ class RunBatch:
             lift = jax.vmap if vmapped else _one_run
             if overlap is None:
                 self.init = jax.jit(lift(program.init))
-                self.epoch = jax.jit(lift(program.epoch), donate_argnums=0)
+                self.epoch = CompiledAhead(jax.jit(lift(program.epoch), donate_argnums=0))
             else:
                 self.epoch = OverlapEpoch(program, vmapped, self.devices[0], overlap[1],
                                           overlap[0])
@@ -313,6 +353,16 @@ class RunBatch:
 
         self.init = jax.jit(split(program.init))
         self.epoch = jax.jit(split(program.epoch), donate_argnums=0)
+
+    def compile_ahead(self, keys: Any, hps: Any) -> None:
+        """Start compiling ``epoch`` for the state ``init(keys, hps)`` will return, on a
+        background thread (one device, sequential cycles; elsewhere nothing)."""
+        if not isinstance(self.epoch, CompiledAhead) or self.epoch._compiled is not None:
+            return
+        shapes = jax.eval_shape(self.init, keys, hps)
+        abstract = jax.tree.map(lambda a: jax.ShapeDtypeStruct(
+            a.shape, a.dtype, sharding=self.sharding, weak_type=a.weak_type), shapes)
+        self.epoch.start(abstract, hps)
 
     def pad(self, tree: Any) -> Any:
         """Extend the run axis to ``n_padded`` with copies of the first run."""
@@ -678,6 +728,7 @@ def drive(plan: Plan, argv: Sequence[str] = (), prog: str = "", log=print,
     env, _, batch = batch_for(runs, devices, vmapped=plan.sweep)
     hps = batch.put(stack([hparams_from_config(c) for c in runs]))
     keys = batch.put(stack([jax.random.PRNGKey(c.seed) for c in runs]))
+    batch.compile_ahead(keys, hps)
     ts = batch.init(keys, hps)
     # The runs this process steps: all of them with one process. With several, each steps
     # its own block of the run axis, and process 0 writes every run's files (metrics, plots,

@@ -11,6 +11,7 @@ killed leaves no library behind.
 
 from __future__ import annotations
 
+import atexit
 import hashlib
 import importlib.metadata
 import importlib.util
@@ -111,6 +112,7 @@ def start() -> None:
 
         _thread = threading.Thread(target=run, name="rdher-ffi-build", daemon=True)
         _thread.start()
+        atexit.register(_thread.join)  # an early exit leaves no half-built library behind
 
 
 def wait() -> None:

@@ -103,3 +103,26 @@ def test_a_4096_env_run_has_the_state_eval_shape_predicts(algo):
     assert state.buffer.obs.shape[0] == 204800 // 50
     if algo == "rdher":  # the ring holds every match one cycle of 4096 envs can record
         assert state.relabel.rec_i.shape == (2 * 4096 * 51 * 8,) == (cfg.dher_records,)
+
+
+def test_compiled_ahead_runs_its_executable_and_falls_back_to_jit():
+    """CompiledAhead compiles from shapes on a thread; calls run that executable (the jitted
+    function is never traced for them), and an input it does not take goes to jit."""
+    traced = []
+
+    def f(x, y):
+        traced.append(x.shape)
+        return x * 2 + y, (x ** 2).sum()
+
+    ahead = driver.CompiledAhead(jax.jit(f, donate_argnums=0))
+    ahead.start(jax.ShapeDtypeStruct((3,), np.float32), np.float32(1))
+    assert len(traced) <= 1  # the background thread traces once
+    x = jax.numpy.arange(3, dtype=np.float32)
+    want = f(x, np.float32(1))
+    n = len(traced)
+    got = ahead(x + 0, np.float32(1))
+    np.testing.assert_array_equal(np.asarray(got[0]), np.asarray(want[0]))
+    assert ahead._compiled is not None and len(traced) == n  # the executable ran, no jit trace
+    out = ahead(jax.numpy.ones(4, np.float32), np.float32(1))  # another shape: jit
+    np.testing.assert_array_equal(np.asarray(out[0]), np.full(4, 3.0, np.float32))
+    assert ahead._compiled is None and traced[-1] == (4,)
