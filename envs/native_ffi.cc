@@ -58,12 +58,10 @@ Task* find(int64_t id) {
 
 void site_vel(const Task& t, const mjData* d, const double* state, int site, int root,
               const std::vector<int64_t>& chain, double* velp, double* velr) {
-  const mjModel* m = t.m;
   const double* qvel = state + t.f[kOffQvel];
   double offset[3];
   for (int x = 0; x < 3; ++x) offset[x] = d->site_xpos[3 * site + x] - d->subtree_com[3 * root + x];
   for (int x = 0; x < 3; ++x) velp[x] = velr[x] = 0.0;
-  (void)m;
   for (size_t k = 0; k < chain.size(); ++k) {
     const double* cd = d->cdof + 6 * chain[k];
     const double q = qvel[chain[k]];
@@ -136,13 +134,23 @@ void parallel(const Task& t, int64_t n, Fn fn) {
   for (auto& th : pool) th.join();
 }
 
+// Run fn(i, data) for every batch index i in [0, n), each on its own mjData, holding the task
+// (its data grown to n) for the call.
+template <typename Fn>
+void for_each_env(Task& t, int64_t n, Fn fn) {
+  std::lock_guard<std::mutex> lock(t.mu);
+  for (int64_t i = 0; i < n; ++i) data_for(t, i);
+  parallel(t, n, [&](int64_t i) { fn(i, t.data[i]); });
+}
+
 constexpr double kMocapQuatDelta[4] = {1.0, 0.0, 1.0, 0.0};
+constexpr char kUnregistered[] = "rdher_jax: physics task not registered";
 
 ffi::Error Step(int64_t task_id, ffi::Buffer<ffi::U32> bits, ffi::Buffer<ffi::F32> delta,
                 ffi::Buffer<ffi::F32> grip, ffi::ResultBuffer<ffi::U32> bits_out,
                 ffi::ResultBuffer<ffi::F32> raw_out) {
   Task* tp = find(task_id);
-  if (!tp) return ffi::Error::InvalidArgument("rdher_jax: physics task not registered");
+  if (!tp) return ffi::Error::InvalidArgument(kUnregistered);
   Task& t = *tp;
   const auto& f = t.f;
   const int64_t width = t.width(), nstate = f[kNstate];
@@ -154,10 +162,7 @@ ffi::Error Step(int64_t task_id, ffi::Buffer<ffi::U32> bits, ffi::Buffer<ffi::F3
   const float* gr = grip.typed_data();
   uint32_t* bo = bits_out->typed_data();
   float* ro = raw_out->typed_data();
-  std::lock_guard<std::mutex> lock(t.mu);
-  for (int64_t i = 0; i < n; ++i) data_for(t, i);
-  parallel(t, n, [&](int64_t i) {
-    mjData* d = t.data[i];
+  for_each_env(t, n, [&](int64_t i, mjData* d) {
     std::vector<double> state(full + i * width, full + i * width + nstate);
     const double* ref = full + i * width + nstate;
     for (int x = 0; x < 3; ++x)
@@ -182,7 +187,7 @@ ffi::Error Step(int64_t task_id, ffi::Buffer<ffi::U32> bits, ffi::Buffer<ffi::F3
 ffi::Error Reset(int64_t task_id, ffi::Buffer<ffi::F32> qpos, ffi::Buffer<ffi::F32> qvel,
                  ffi::ResultBuffer<ffi::U32> bits_out, ffi::ResultBuffer<ffi::F32> raw_out) {
   Task* tp = find(task_id);
-  if (!tp) return ffi::Error::InvalidArgument("rdher_jax: physics task not registered");
+  if (!tp) return ffi::Error::InvalidArgument(kUnregistered);
   Task& t = *tp;
   const auto& f = t.f;
   const int64_t width = t.width(), nq = f[kNq], nv = f[kNv];
@@ -193,10 +198,7 @@ ffi::Error Reset(int64_t task_id, ffi::Buffer<ffi::F32> qpos, ffi::Buffer<ffi::F
   const float* qv = qvel.typed_data();
   uint32_t* bo = bits_out->typed_data();
   float* ro = raw_out->typed_data();
-  std::lock_guard<std::mutex> lock(t.mu);
-  for (int64_t i = 0; i < n; ++i) data_for(t, i);
-  parallel(t, n, [&](int64_t i) {
-    mjData* d = t.data[i];
+  for_each_env(t, n, [&](int64_t i, mjData* d) {
     std::vector<double> state(t.tmpl);
     // Entries the caller left at the template (equal in float32) keep its float64 value.
     auto take = [&](int64_t off, const float* src, int64_t k) {
@@ -219,8 +221,8 @@ ffi::Error Reset(int64_t task_id, ffi::Buffer<ffi::F32> qpos, ffi::Buffer<ffi::F
 
 extern "C" {
 
-// Register (or re-register) a task under `id`: the model stays owned by the caller and must
-// outlive every call. Returns 0, or -1 on a malformed layout.
+// Register (or re-register) a task under `id`: the model stays owned by the caller (native_ffi.py
+// keeps a private copy for the life of the process) and must outlive every call. Returns 0, or -1 on a malformed layout.
 int rdher_register(int64_t id, const mjModel* m, const int64_t* fields, int64_t nfields,
                    const int64_t* lists, const double* tmpl) {
   if (nfields != kNumFields) return -1;

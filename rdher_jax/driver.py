@@ -550,12 +550,19 @@ def plot_title(cfg: Config) -> str:
     return f"{cfg.env} {cfg.algo} seed {cfg.seed}{lam}"
 
 
+# success.png is redrawn at most this often while a run trains, and always when it ends: a
+# plot costs about 0.2 s (and matplotlib's import 0.4 s the first time), a fifth of a FetchReach
+# epoch, and a sweep draws one per run.
+PLOT_EVERY_S = 30.0
+
+
 class RunOutputs:
     """The files of one run in ``run_dir`` and what every epoch adds to them.
 
-    config.yaml and run_info.json (:meth:`start`), metrics.csv (a row per epoch), success.png,
-    the best-policy checkpoint (ties go to the later epoch, as in baselines) and TensorBoard
-    scalars. ``latest=True`` (a run's own layout): ``ckpt`` also keeps the run's latest state.
+    config.yaml and run_info.json (:meth:`start`), metrics.csv (a row per epoch), success.png
+    (redrawn every ``PLOT_EVERY_S`` seconds of training and by :meth:`flush`), the best-policy
+    checkpoint (ties go to the later epoch, as in baselines) and TensorBoard scalars.
+    ``latest=True`` (a run's own layout): ``ckpt`` also keeps the run's latest state.
     """
 
     def __init__(self, cfg: Config, run_dir: str | Path, latest: bool = True) -> None:
@@ -568,6 +575,8 @@ class RunOutputs:
             raise ConfigError(f"cannot continue {self.run_dir}: {e}") from None
         self.tb = TBWriter(self.run_dir) if cfg.tensorboard else None
         self.best = -1.0
+        self._plot_due = time.monotonic() + PLOT_EVERY_S
+        self._unplotted = False
 
     def start(self, info: Mapping[str, Any]) -> None:
         """Begin the run from epoch 0: write config.yaml and run_info.json, and drop any rows
@@ -583,8 +592,9 @@ class RunOutputs:
         self.best = best
 
     def record(self, row: Mapping[str, Any], policy: Callable[[], Any]) -> bool:
-        """Append ``row``; save ``policy()`` when its test success is the best so far; replot.
-        Returns whether it was a new best."""
+        """Append ``row``; save ``policy()`` when its test success is the best so far.
+        Returns whether it was a new best. The plot is :meth:`plot_if_due`'s and
+        :meth:`flush`'s."""
         self.csv.append(row)
         if self.tb is not None:
             self.tb.scalars(row, step=int(row["env_steps"]))
@@ -593,11 +603,24 @@ class RunOutputs:
             self.best = float(row["test_success"])
             self.ckpt.save_best(int(row["epoch"]), policy(),
                                 {"test_success": self.best, "epoch": int(row["epoch"])})
-        plot_success(self.run_dir / "metrics.csv", self.run_dir / "success.png",
-                     plot_title(self.cfg))
+        self._unplotted = True
         return new_best
 
+    def plot_if_due(self) -> None:
+        """Redraw success.png if ``PLOT_EVERY_S`` passed since it was last drawn."""
+        if time.monotonic() >= self._plot_due:
+            self.flush()
+
+    def flush(self) -> None:
+        """Redraw success.png if rows came since it was last drawn."""
+        if self._unplotted:
+            plot_success(self.run_dir / "metrics.csv", self.run_dir / "success.png",
+                         plot_title(self.cfg))
+            self._unplotted = False
+        self._plot_due = time.monotonic() + PLOT_EVERY_S
+
     def close(self) -> None:
+        self.flush()
         self.ckpt.close()
         if self.tb is not None:
             self.tb.close()
@@ -825,70 +848,91 @@ def drive(plan: Plan, argv: Sequence[str] = (), prog: str = "", log=print,
         return [i for i, name in enumerate(names) if name not in diverged]
 
     stopped = None  # the epoch after which stop_success was met
-    for epoch in range(start, cfg.epochs):
+    # The next epoch is dispatched once this one's files are written (the metrics row and the
+    # best policy before the latest state, so that a run killed in between resumes consistent;
+    # the program donates the state), so the sweep summary and the progress bar (and the plot,
+    # when due) overlap it.
+    pending = None
+    if start < cfg.epochs:
         if reached_stop(cfg, recent, live()):  # a resumed run that had already met it
-            stopped = epoch
-            break
-        t0 = time.perf_counter()
-        ts, m = batch.epoch(ts, hps)
-        m = batch.host(m)  # every run's, on every process
-        dt = time.perf_counter() - t0
-        wall = time.perf_counter() - t_start
-        rows: dict[int, dict] = {}
-        for i, name in enumerate(names):
-            if name in diverged:
-                continue
-            row = epoch_row(epoch + 1, _row_of(m, i), wall)
-            bad = nonfinite_losses(row)
-            if bad:
-                diverged[name] = epoch + 1
-                if not plan.sweep:
-                    raise TrainingDiverged(
-                        f"{', '.join(bad)} became non-finite in epoch {epoch + 1}; stopped. "
-                        f"{last_good_checkpoint(ckpt)}")
-                if main:
-                    log(f"{name}: {', '.join(bad)} became non-finite in epoch {epoch + 1}; "
-                        f"its outputs stop at epoch {epoch}, the other runs go on")
-                continue
-            rows[i] = row
-        # Learner states are fetched once, and only when some run has a new best (ties go to
-        # the later epoch, as in RunOutputs.record); sliced per run on the host.
-        new_best = [i for i, r in rows.items() if r["test_success"] >= best[i]]
-        pol = batch.host(ts.ddpg) if new_best else None
-        tests = []
-        for i, row in rows.items():
-            best[i] = max(best[i], float(row["test_success"]))
-            recent[i] = (recent[i] + [float(row["test_success"])])[-cfg.stop_window:]
-            if i in outs:
-                outs[i].record(row, lambda i=i, pol=pol: _row_of(pol, i))
-            last_rows[i] = row
-            tests.append(row["test_success"])
-        if len(diverged) == n:
-            raise TrainingDiverged(
-                f"the losses of every run became non-finite (the last in epoch {epoch + 1}); "
-                f"stopped. {last_good_checkpoint(ckpt)}")
-        stop = reached_stop(cfg, recent, live())
-        if stop or is_checkpoint_epoch(cfg, epoch + 1):
-            bests = list(best)
-            meta = ({"best_success": bests, "wall_time": round(wall, 3),
-                     "diverged": diverged, "runs": names, "recent_success": recent}
-                    if plan.sweep else
-                    {"best_success": bests[0], "wall_time": round(wall, 3),
-                     "recent_success": recent[0]})
-            ckpt.save_latest(epoch + 1, saved(ts), meta)
-        if plan.sweep and main:
-            summary.write(plan, diverged)
-        if bar is not None:
-            if tests:  # this process's runs that have not diverged
-                post = {"env_steps": int(np.max(m.env_steps)),
-                        "sps": f"{steps_per_epoch / dt:.0f}", "test": f"{np.mean(tests):.2f}"}
-                if plan.sweep:
-                    post["best"] = f"{max(tests):.2f}"
-                bar.set_postfix(post)
-            bar.update(1)
-        if stop:
-            stopped = epoch + 1
-            break
+            stopped = start
+        else:
+            pending = batch.epoch(ts, hps)
+    t_prev = time.perf_counter()
+    try:
+        for epoch in range(start, cfg.epochs):
+            if pending is None:
+                break
+            ts, m = pending
+            pending = None
+            m = batch.host(m)  # every run's, on every process
+            now = time.perf_counter()
+            dt, t_prev = now - t_prev, now
+            wall = now - t_start
+            rows: dict[int, dict] = {}
+            for i, name in enumerate(names):
+                if name in diverged:
+                    continue
+                row = epoch_row(epoch + 1, _row_of(m, i), wall)
+                bad = nonfinite_losses(row)
+                if bad:
+                    diverged[name] = epoch + 1
+                    if not plan.sweep:
+                        raise TrainingDiverged(
+                            f"{', '.join(bad)} became non-finite in epoch {epoch + 1}; "
+                            f"stopped. {last_good_checkpoint(ckpt)}")
+                    if main:
+                        log(f"{name}: {', '.join(bad)} became non-finite in epoch {epoch + 1}; "
+                            f"its outputs stop at epoch {epoch}, the other runs go on")
+                    continue
+                rows[i] = row
+            if len(diverged) == n:
+                raise TrainingDiverged(
+                    f"the losses of every run became non-finite (the last in epoch "
+                    f"{epoch + 1}); stopped. {last_good_checkpoint(ckpt)}")
+            # Learner states are fetched once, and only when some run has a new best (ties go
+            # to the later epoch, as in RunOutputs.record); sliced per run on the host.
+            new_best = [i for i, r in rows.items() if r["test_success"] >= best[i]]
+            pol = batch.host(ts.ddpg) if new_best else None
+            tests = []
+            for i, row in rows.items():
+                best[i] = max(best[i], float(row["test_success"]))
+                recent[i] = (recent[i] + [float(row["test_success"])])[-cfg.stop_window:]
+                if i in outs:
+                    outs[i].record(row, lambda i=i, pol=pol: _row_of(pol, i))
+                last_rows[i] = row
+                tests.append(row["test_success"])
+            del pol
+            stop = reached_stop(cfg, recent, live())
+            if stop or is_checkpoint_epoch(cfg, epoch + 1):
+                bests = list(best)
+                meta = ({"best_success": bests, "wall_time": round(wall, 3),
+                         "diverged": diverged, "runs": names, "recent_success": recent}
+                        if plan.sweep else
+                        {"best_success": bests[0], "wall_time": round(wall, 3),
+                         "recent_success": recent[0]})
+                ckpt.save_latest(epoch + 1, saved(ts), meta)
+            if not stop and epoch + 1 < cfg.epochs:
+                pending = batch.epoch(ts, hps)
+            for o in outs.values():
+                o.plot_if_due()
+            if plan.sweep and main:
+                summary.write(plan, diverged)
+            if bar is not None:
+                if tests:  # this process's runs that have not diverged
+                    post = {"env_steps": int(np.max(m.env_steps)),
+                            "sps": f"{steps_per_epoch / dt:.0f}",
+                            "test": f"{np.mean(tests):.2f}"}
+                    if plan.sweep:
+                        post["best"] = f"{max(tests):.2f}"
+                    bar.set_postfix(post)
+                bar.update(1)
+            if stop:
+                stopped = epoch + 1
+                break
+    finally:
+        for o in outs.values():
+            o.flush()
     if bar is not None:
         bar.close()
     if stopped is not None and main:

@@ -126,3 +126,35 @@ def test_compiled_ahead_runs_its_executable_and_falls_back_to_jit():
     out = ahead(jax.numpy.ones(4, np.float32), np.float32(1))  # another shape: jit
     np.testing.assert_array_equal(np.asarray(out[0]), np.full(4, 3.0, np.float32))
     assert ahead._compiled is None and traced[-1] == (4,)
+
+
+def test_the_plot_is_drawn_when_due_and_when_the_run_ends(tmp_path, monkeypatch):
+    """success.png is redrawn at most every PLOT_EVERY_S while rows come, and always by
+    close(); a row recorded since the last plot is never left undrawn at the end."""
+    drawn = []
+    monkeypatch.setattr(driver, "plot_success", lambda csv_path, png, title: drawn.append(
+        len(read_rows(csv_path))))
+    cfg = resolve(Config(**TINY, run_dir=str(tmp_path / "run")))
+    out = driver.RunOutputs(cfg, cfg.run_dir)
+    out.start({})
+    fields = driver.csv_fields()
+
+    def row(epoch):
+        return {k: (epoch if k == "epoch" else 0.5 if k == "test_success" else 0)
+                for k in fields}
+
+    monkeypatch.setattr(driver, "PLOT_EVERY_S", 3600.0)
+    out._plot_due = driver.time.monotonic() + 3600.0
+    policy = lambda: {"w": np.zeros(2, np.float32)}  # noqa: E731
+    out.record(row(1), policy)
+    out.plot_if_due()
+    assert drawn == []  # not due yet
+    out._plot_due = driver.time.monotonic() - 1.0
+    out.record(row(2), policy)
+    out.plot_if_due()
+    assert drawn == [2]
+    out.plot_if_due()  # due again only after PLOT_EVERY_S
+    assert drawn == [2]
+    out.record(row(3), policy)
+    out.close()
+    assert drawn == [2, 3]
