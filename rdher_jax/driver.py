@@ -554,6 +554,9 @@ def plot_title(cfg: Config) -> str:
 # plot costs about 0.2 s (and matplotlib's import 0.4 s the first time), a fifth of a FetchReach
 # epoch, and a sweep draws one per run.
 PLOT_EVERY_S = 30.0
+# Training states up to this size are copied to the host each epoch so that the next epoch runs
+# while the files are written (drive); larger ones are written first.
+COPY_AHEAD_BYTES = 512 * 2**20
 
 
 class RunOutputs:
@@ -848,10 +851,13 @@ def drive(plan: Plan, argv: Sequence[str] = (), prog: str = "", log=print,
         return [i for i, name in enumerate(names) if name not in diverged]
 
     stopped = None  # the epoch after which stop_success was met
-    # The next epoch is dispatched once this one's files are written (the metrics row and the
-    # best policy before the latest state, so that a run killed in between resumes consistent;
-    # the program donates the state), so the sweep summary and the progress bar (and the plot,
-    # when due) overlap it.
+    # While an epoch runs, the previous one's files are written: its metrics rows, best policies
+    # and latest state go to disk from host copies taken before the next epoch is dispatched
+    # (the program donates the state), in that order, so that a run killed in between resumes
+    # consistent. A state too large to copy each epoch (a sweep's buffers) is written first and
+    # the next epoch dispatched after.
+    copy_ahead = (not batch.multi_process
+                  and tree_bytes(ts) <= COPY_AHEAD_BYTES)
     pending = None
     if start < cfg.epochs:
         if reached_stop(cfg, recent, live()):  # a resumed run that had already met it
@@ -890,20 +896,16 @@ def drive(plan: Plan, argv: Sequence[str] = (), prog: str = "", log=print,
                 raise TrainingDiverged(
                     f"the losses of every run became non-finite (the last in epoch "
                     f"{epoch + 1}); stopped. {last_good_checkpoint(ckpt)}")
-            # Learner states are fetched once, and only when some run has a new best (ties go
-            # to the later epoch, as in RunOutputs.record); sliced per run on the host.
             new_best = [i for i, r in rows.items() if r["test_success"] >= best[i]]
-            pol = batch.host(ts.ddpg) if new_best else None
             tests = []
             for i, row in rows.items():
                 best[i] = max(best[i], float(row["test_success"]))
                 recent[i] = (recent[i] + [float(row["test_success"])])[-cfg.stop_window:]
-                if i in outs:
-                    outs[i].record(row, lambda i=i, pol=pol: _row_of(pol, i))
                 last_rows[i] = row
                 tests.append(row["test_success"])
-            del pol
             stop = reached_stop(cfg, recent, live())
+            go_on = not stop and epoch + 1 < cfg.epochs
+            meta = None
             if stop or is_checkpoint_epoch(cfg, epoch + 1):
                 bests = list(best)
                 meta = ({"best_success": bests, "wall_time": round(wall, 3),
@@ -911,8 +913,20 @@ def drive(plan: Plan, argv: Sequence[str] = (), prog: str = "", log=print,
                         if plan.sweep else
                         {"best_success": bests[0], "wall_time": round(wall, 3),
                          "recent_success": recent[0]})
-                ckpt.save_latest(epoch + 1, saved(ts), meta)
-            if not stop and epoch + 1 < cfg.epochs:
+            # Learner states are fetched once, and only when some run has a new best (ties go
+            # to the later epoch, as in RunOutputs.record); sliced per run on the host.
+            pol = batch.host(ts.ddpg) if new_best else None
+            state = saved(ts) if meta is not None else None
+            if copy_ahead and go_on:
+                pol, state = jax.tree.map(np.array, (pol, state))
+                pending = batch.epoch(ts, hps)
+            for i, row in rows.items():
+                if i in outs:
+                    outs[i].record(row, lambda i=i, pol=pol: _row_of(pol, i))
+            if meta is not None:
+                ckpt.save_latest(epoch + 1, state, meta)
+            del pol, state
+            if go_on and pending is None:
                 pending = batch.epoch(ts, hps)
             for o in outs.values():
                 o.plot_if_due()

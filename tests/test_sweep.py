@@ -154,14 +154,14 @@ def test_resume_equals_uninterrupted(ref, tmp_path, monkeypatch):
     """A sweep stopped after epoch 3's rows but before its checkpoint (the last one is after
     epoch 2) resumes from epoch 2 and ends exactly as the uninterrupted sweep."""
     d = ref["dir"]
-    real = driver.is_checkpoint_epoch
+    real = driver.Checkpointer.save_latest
 
-    def stop_at_3(cfg, epoch):
+    def stop_at_3(self, epoch, state, meta):
         if epoch == 3:
             raise Interrupted
-        return real(cfg, epoch)
+        return real(self, epoch, state, meta)
 
-    monkeypatch.setattr(driver, "is_checkpoint_epoch", stop_at_3)
+    monkeypatch.setattr(driver.Checkpointer, "save_latest", stop_at_3)
     with pytest.raises(Interrupted):
         run_sweep(tmp_path / "s")
     monkeypatch.undo()
