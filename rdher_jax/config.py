@@ -54,6 +54,7 @@ RESUMABLE_KEYS: frozenset[str] = frozenset(
         "progress",
         "compile_cache",
         "physics_call",
+        "physics_threads",
         "stop_success",
         "stop_window",
     }
@@ -258,6 +259,11 @@ class Config:
         "cacheable) or callback (jax.pure_callback, never cached); the same results bit for "
         "bit, and ffi falls back to callback with a warning where it cannot be built"
     )
+    physics_threads: int | None = _f(
+        None, "host threads stepping the native physics (backend=mujoco); null: every usable "
+        "core, or 1 with overlap=true, whose learner runs beside it; the results do not "
+        "depend on it"
+    )
 
 
 FIELD_NAMES: tuple[str, ...] = tuple(f.name for f in dataclasses.fields(Config))
@@ -331,6 +337,8 @@ def validate(cfg: Config) -> Config:
     if cfg.preset is not None:
         _one_of("preset", cfg.preset, tuple(PRESETS))
     _check(0 <= cfg.seed < 2**32, f"seed must be in [0, 2**32), got {cfg.seed}")
+    _check(cfg.physics_threads is None or cfg.physics_threads >= 1,
+           f"physics_threads must be >= 1 or null, got {cfg.physics_threads}")
     positive = (
         "epochs",
         "n_cycles",

@@ -99,9 +99,14 @@ def build(cfg: Config):
     from .program import make_program
 
     backend, scene = resolve_backend(cfg)
+    extra = {}
+    if backend == "mujoco":
+        # With overlap the physics has a host device, and so a core, of its own: a second
+        # physics thread would take the learner's.
+        extra["num_threads"] = cfg.physics_threads or (1 if cfg.overlap else None)
     env = make_env(cfg.env, backend=backend, scene=scene, auto_reset=False,
                    goal_speed=cfg.goal_speed, episode_length=cfg.episode_length,
-                   physics_call=cfg.physics_call)
+                   physics_call=cfg.physics_call, **extra)
     return env, make_program(cfg, env)
 
 

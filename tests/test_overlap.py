@@ -153,3 +153,25 @@ def test_a_preset_that_sets_overlap_names_itself_in_the_error(monkeypatch):
     with pytest.raises(ConfigError, match=r"second host device.*preset=ov sets overlap=true.*"
                        r"add overlap=false"):
         batch_for([cfg])
+
+
+@pytest.mark.parametrize("settings, threads", [
+    ([], None), (["overlap=true"], 1), (["overlap=true", "physics_threads=2"], 2),
+    (["physics_threads=3"], 3)])
+def test_the_physics_takes_one_thread_beside_an_overlapped_learner(settings, threads):
+    """overlap=true: the native physics steps on one host thread (its device's core), unless
+    physics_threads says otherwise; without overlap it takes every usable core."""
+    from rdher_jax import driver
+    from rdher_jax.config import resolve
+    from rdher_jax.envs.native import _cpu_threads
+
+    cfg = resolve(parse_args(["env=FetchReach", *settings]))
+    env, _ = driver.build(cfg)
+    assert env.backend.num_threads == (threads or _cpu_threads())
+
+
+def test_physics_threads_must_be_positive():
+    from rdher_jax.config import resolve
+
+    with pytest.raises(ConfigError, match="physics_threads must be >= 1"):
+        resolve(parse_args(["physics_threads=0"]))
