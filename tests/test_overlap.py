@@ -161,9 +161,10 @@ def test_a_preset_that_sets_overlap_names_itself_in_the_error(monkeypatch):
 def test_the_physics_takes_one_thread_beside_an_overlapped_learner(settings, threads):
     """overlap=true: the native physics steps on one host thread (its device's core), unless
     physics_threads says otherwise; without overlap it takes every usable core."""
+    from rdher_jax.envs.native import _cpu_threads
+
     from rdher_jax import driver
     from rdher_jax.config import resolve
-    from rdher_jax.envs.native import _cpu_threads
 
     cfg = resolve(parse_args(["env=FetchReach", *settings]))
     env, _ = driver.build(cfg)
