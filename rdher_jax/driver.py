@@ -559,9 +559,6 @@ def plot_title(cfg: Config) -> str:
 # plot costs about 0.2 s (and matplotlib's import 0.4 s the first time), a fifth of a FetchReach
 # epoch, and a sweep draws one per run.
 PLOT_EVERY_S = 30.0
-# Training states up to this size are copied to the host each epoch so that the next epoch runs
-# while the files are written (drive); larger ones are written first.
-COPY_AHEAD_BYTES = 512 * 2**20
 
 
 class RunOutputs:
@@ -856,13 +853,10 @@ def drive(plan: Plan, argv: Sequence[str] = (), prog: str = "", log=print,
         return [i for i, name in enumerate(names) if name not in diverged]
 
     stopped = None  # the epoch after which stop_success was met
-    # While an epoch runs, the previous one's files are written: its metrics rows, best policies
-    # and latest state go to disk from host copies taken before the next epoch is dispatched
-    # (the program donates the state), in that order, so that a run killed in between resumes
-    # consistent. A state too large to copy each epoch (a sweep's buffers) is written first and
-    # the next epoch dispatched after.
-    copy_ahead = (not batch.multi_process
-                  and tree_bytes(ts) <= COPY_AHEAD_BYTES)
+    # Each epoch's files are written in this order: metrics rows and best policies, then the
+    # latest state (so that a run killed in between resumes consistent); then the next epoch is
+    # dispatched (it donates the state), and the plot, sweep summary and progress bar are
+    # written while it runs.
     pending = None
     if start < cfg.epochs:
         if reached_stop(cfg, recent, live()):  # a resumed run that had already met it
@@ -921,17 +915,13 @@ def drive(plan: Plan, argv: Sequence[str] = (), prog: str = "", log=print,
             # Learner states are fetched once, and only when some run has a new best (ties go
             # to the later epoch, as in RunOutputs.record); sliced per run on the host.
             pol = batch.host(ts.ddpg) if new_best else None
-            state = saved(ts) if meta is not None else None
-            if copy_ahead and go_on:
-                pol, state = jax.tree.map(np.array, (pol, state))
-                pending = batch.epoch(ts, hps)
             for i, row in rows.items():
                 if i in outs:
                     outs[i].record(row, lambda i=i, pol=pol: _row_of(pol, i))
+            del pol
             if meta is not None:
-                ckpt.save_latest(epoch + 1, state, meta)
-            del pol, state
-            if go_on and pending is None:
+                ckpt.save_latest(epoch + 1, saved(ts), meta)
+            if go_on:
                 pending = batch.epoch(ts, hps)
             for o in outs.values():
                 o.plot_if_due()

@@ -158,26 +158,3 @@ def test_the_plot_is_drawn_when_due_and_when_the_run_ends(tmp_path, monkeypatch)
     out.record(row(3), policy)
     out.close()
     assert drawn == [2, 3]
-
-
-def test_writing_files_beside_the_next_epoch_gives_the_same_run(tmp_path, monkeypatch,
-                                                                interrupt_checkpoint):
-    """The next epoch dispatched before an epoch's files are written (from host copies) or
-    after (a state too large to copy): the same rows, best policy and latest checkpoint (that
-    of epoch 2, written while epoch 3 ran; the run is stopped at epoch 3's checkpoint)."""
-    interrupted = interrupt_checkpoint(3)
-    out = {}
-    for limit in (driver.COPY_AHEAD_BYTES, 0):
-        monkeypatch.setattr(driver, "COPY_AHEAD_BYTES", limit)
-        run_dir = tmp_path / f"limit{limit}"
-        with pytest.raises(interrupted):
-            train_mod.train(resolve(Config(**{**TINY, "epochs": 4, "run_dir": str(run_dir)})),
-                            log=lambda *a: None)
-        ck = driver.Checkpointer(run_dir, read_only=True)
-        out[limit] = (read_rows(run_dir / "metrics.csv"), ck.latest_epoch(), ck.best_epoch(),
-                      jax.tree.leaves(ck.restore_latest(None)[1]))
-    (*a, la), (*b, lb) = out.values()
-    assert len(a[0]) == 3 and a[1] == 2 and a == b
-    assert len(la) == len(lb) > 10
-    for x, y in zip(la, lb, strict=True):
-        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
