@@ -222,7 +222,8 @@ ffi::Error Reset(int64_t task_id, ffi::Buffer<ffi::F32> qpos, ffi::Buffer<ffi::F
 extern "C" {
 
 // Register (or re-register) a task under `id`: the model stays owned by the caller (native_ffi.py
-// keeps a private copy for the life of the process) and must outlive every call. Returns 0, or -1 on a malformed layout.
+// keeps a private copy for the life of the process) and must outlive every call. Returns 0, or
+// -1 on a malformed layout.
 int rdher_register(int64_t id, const mjModel* m, const int64_t* fields, int64_t nfields,
                    const int64_t* lists, const double* tmpl) {
   if (nfields != kNumFields) return -1;

@@ -13,9 +13,9 @@ experiment). The profile's name, doc and the task's budget are written into ever
   (``--tasks FetchPush``): :data:`PUSH_CPU`, ``preset=fast`` for 500,000 env steps, 3 seeds.
 - ``paper``: the paper's budget: every task, Table 1's settings, 5 seeds, 50 epochs (10 cycles
   each for Reach, 50 for the others). A CPU runs it: a 5-seed sweep is 13-26 min (Reach; CHER
-  the most) and 1 h 36 min to 1 h 48 min (Slide and PickAndPlace, HER and RDHER) of one core
-  beside another sweep (``run_info.json`` under ``experiments/results/benchmark/paper/``). The paper does not
-  state its epoch counts; 50 is ``n_epochs``'s default in the code it builds on
+  the most) and 1 h 36 min to 1 h 48 min (Slide and PickAndPlace, HER, DHER and RDHER) of one
+  core beside another sweep (``run_info.json`` under ``experiments/results/benchmark/paper/``).
+  The paper does not state its epoch counts; 50 is ``n_epochs``'s default in the code it builds on
   (openai/baselines ``her/experiment/train.py``, mengf1/DHER ``train_dyreach.py``) and fits
   Table 3's wall clock (HER on Push: 3 h 30 min on one CPU core, i.e. 4.2 min per 50-cycle
   epoch; on Reach 46 min, 56 s per 10-cycle epoch).

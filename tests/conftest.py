@@ -35,27 +35,3 @@ def one_line_error():
     """``one_line_error(popen) -> the error line``, asserting the one-line error contract."""
     return _one_line_error
 
-
-class Interrupted(Exception):
-    """What :func:`interrupt_checkpoint` raises in place of a checkpoint."""
-
-
-@pytest.fixture
-def interrupt_checkpoint(monkeypatch):
-    """``interrupt_checkpoint(epoch)``: the driver's latest-state save of that epoch raises
-    :class:`Interrupted` instead (a run killed after the epoch's rows, before its checkpoint);
-    the other epochs save as usual. Returns the exception class."""
-    from rdher_jax import driver
-
-    real = driver.Checkpointer.save_latest
-
-    def arm(at: int) -> type[Exception]:
-        def save_latest(self, epoch, state, meta):
-            if epoch == at:
-                raise Interrupted
-            return real(self, epoch, state, meta)
-
-        monkeypatch.setattr(driver.Checkpointer, "save_latest", save_latest)
-        return Interrupted
-
-    return arm

@@ -146,11 +146,23 @@ def test_sharded_sweep_equals_unsharded(ref):
                          read_csv(sharded / run / "metrics.csv"))
 
 
-def test_resume_equals_uninterrupted(ref, tmp_path, monkeypatch, interrupt_checkpoint):
+class Interrupted(Exception):
+    pass
+
+
+def test_resume_equals_uninterrupted(ref, tmp_path, monkeypatch):
     """A sweep stopped after epoch 3's rows but before its checkpoint (the last one is after
     epoch 2) resumes from epoch 2 and ends exactly as the uninterrupted sweep."""
     d = ref["dir"]
-    with pytest.raises(interrupt_checkpoint(3)):
+    real = driver.Checkpointer.save_latest
+
+    def stop_at_3(self, epoch, state, meta):
+        if epoch == 3:
+            raise Interrupted
+        return real(self, epoch, state, meta)
+
+    monkeypatch.setattr(driver.Checkpointer, "save_latest", stop_at_3)
+    with pytest.raises(Interrupted):
         run_sweep(tmp_path / "s")
     monkeypatch.undo()
     assert len(read_csv(tmp_path / "s" / RUNS[0] / "metrics.csv")) == 3
