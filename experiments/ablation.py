@@ -36,7 +36,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from profiles import ABLATION_PAIRS, Setting, add_common_args, num, run_experiment
+from profiles import ABLATION_PAIRS, TASK_TABLE, Setting, add_common_args, num, run_experiment
 
 KIND = "ablation"
 
@@ -52,12 +52,14 @@ Sweep = tuple[str, str, object, tuple[Setting, ...]]
 
 
 def sweeps(task: str, split: bool = False, only: tuple[str, ...] | None = None,
-           her_from_benchmark: bool = False) -> list[Sweep]:
+           her_from_benchmark: bool = False, pick_from_benchmark: bool = False) -> list[Sweep]:
     """(sweep name, algo, lambdas, settings) of one task's ablation. ``split``: one sweep per
     pair, named by its setting, in place of one sweep of all six; ``only``: these settings
     (of :data:`SETTING_NAMES`) alone, in the order given; ``her_from_benchmark``: vanilla HER
     is read from benchmark.py's HER sweep of the same profile and task (the same program and
-    budget, at the benchmark's seeds), not run again."""
+    budget, at the benchmark's seeds), not run again; ``pick_from_benchmark`` (with
+    ``split``): likewise the paper's own pair for the task, from benchmark.py's RDHER sweep,
+    which runs that pair."""
     weighted = tuple(Setting(setting_name(lr, lh), f"RDHER λ_r={num(lr)}, λ_h={num(lh)}",
                              "rdher", (lr, lh), i + 1)
                      for i, (lr, lh) in enumerate(ABLATION_PAIRS))
@@ -67,6 +69,9 @@ def sweeps(task: str, split: bool = False, only: tuple[str, ...] | None = None,
     if split:
         every = {s.name: (s.name, "rdher", (s.lambdas,), (s,)) for s in weighted}
         every["her"] = her
+        if pick_from_benchmark:
+            pick = setting_name(*TASK_TABLE[task].paper_lambdas)
+            every[pick] = ("rdher", "rdher", None, every[pick][3], (), "benchmark")
         return [every[n] for n in (only or SETTING_NAMES)]
     out = [("rdher", "rdher", ABLATION_PAIRS, weighted), her]
     return out if only is None else [j for j in out if j[0] in only]
@@ -90,15 +95,25 @@ def main(argv: list[str] | None = None) -> int:
                     help="read vanilla HER from experiments/benchmark.py's HER sweep of the "
                     "same profile and task (the same runs at the benchmark's seeds) instead of "
                     "running an HER sweep of its own; run benchmark.py first")
+    ap.add_argument("--pick-from-benchmark", action="store_true",
+                    help="with --split: read the paper's own pair for the task (FetchPush and "
+                    "FetchSlide (4, 0.5), the others (2, 1)) from experiments/benchmark.py's "
+                    "RDHER sweep, which runs that pair at the same budget, instead of running "
+                    "it again")
     args = ap.parse_args(argv)
     only = None if args.settings is None else tuple(dict.fromkeys(args.settings))
     if only is not None and not args.split and any(n != "her" for n in only):
         print("error: --settings with a weighted setting needs --split (without it the six "
               "pairs are one sweep)", file=sys.stderr)
         return 2
+    if args.pick_from_benchmark and not args.split:
+        print("error: --pick-from-benchmark needs --split (without it the six pairs are one "
+              "sweep)", file=sys.stderr)
+        return 2
     return run_experiment(KIND, "ablation.py", args, argv,
                           lambda task: sweeps(task, args.split, only,
-                                              args.her_from_benchmark))
+                                              args.her_from_benchmark,
+                                              args.pick_from_benchmark))
 
 
 if __name__ == "__main__":

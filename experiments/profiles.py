@@ -207,8 +207,10 @@ class Job:
     def argv(self, progress: bool) -> list[str]:
         """The sweep's key=value arguments, without sweep_dir= / resume=."""
         out = [f"env={self.task}", f"algo={self.algo}"]
-        out += [f"{k}={v}" for k, v in self.settings.items()]
-        out += list(self.extra)
+        # A key of the sweep's own replaces the budget's value in place (one value per key).
+        own = dict(t.split("=", 1) for t in self.extra)
+        out += [f"{k}={own.pop(k, v)}" for k, v in self.settings.items()]
+        out += [t for t in self.extra if t.split("=", 1)[0] in own]
         if self.lambdas is not None:
             out.append("lambdas=[" + ",".join(f"[{num(a)},{num(b)}]" for a, b in self.lambdas)
                        + "]")
@@ -342,6 +344,8 @@ def collect(job: Job, out_root: Path, command: str, log=print,
     from rdher_jax import distributed
 
     d = job.sweep_dir
+    if job.borrowed and not (d / "summary.json").is_file():
+        return collect_borrowed_results(job, out_root, log)
     try:
         rows = json.loads((d / "summary.json").read_text(encoding="utf-8"))["runs"]
         info = json.loads((d / "run_info.json").read_text(encoding="utf-8"))
@@ -417,6 +421,41 @@ def collect(job: Job, out_root: Path, command: str, log=print,
     log(f"[{job.task} {job.name}] collected {len(job.outputs)} setting(s) into "
         f"{out_root / job.kind / job.profile / job.task}")
     return written
+
+
+def collect_borrowed_results(job: Job, out_root: Path, log=print) -> list[Path]:
+    """A borrowed setting whose sweep directory is gone (its checkpoints are never committed):
+    copy the other experiment's collected results instead, i.e. ``<out_root>/<sweep_kind>/
+    <profile>/<task>/<sweep name>/`` (``s<seed>.csv`` and ``run_info.json``: the same runs
+    :func:`collect` copied from that sweep), with run_info.json's kind, setting, label and
+    order made this experiment's and the source named under ``borrowed_from``. The CSVs are
+    copied byte for byte. Nothing is written when the source has no results either."""
+    (s,) = job.outputs  # a borrowed sweep gives one setting
+    src = out_root / job.sweep_kind / job.profile / job.task / job.name
+    try:
+        meta = json.loads((src / "run_info.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        log(f"[{job.task} {job.name}] nothing to collect: neither the {job.sweep_kind} sweep "
+            f"{job.sweep_dir} nor its results {src} exist (run {job.sweep_kind}.py first)")
+        return []
+    dest = out_root / job.kind / job.profile / job.task / s.name
+    if dest.resolve() == src.resolve():
+        return [dest]
+    dest.mkdir(parents=True, exist_ok=True)
+    csvs = {p.name: p.read_text(encoding="utf-8") for p in sorted(src.glob("s*.csv"))}
+    for stale in dest.glob("s*.csv"):
+        if stale.name not in csvs:
+            stale.unlink()
+    for name, text in csvs.items():
+        write_text_atomic(dest / name, text)
+    meta.update({"kind": job.kind, "setting": s.name, "label": s.label, "order": s.order,
+                 "borrowed_from": {"results": _rel(src), "kind": job.sweep_kind,
+                                   "setting": meta.get("setting"),
+                                   "command": meta.get("command")}})
+    write_text_atomic(dest / "run_info.json", json.dumps(meta, indent=1, sort_keys=True) + "\n")
+    log(f"[{job.task} {job.name}] copied the {job.sweep_kind} results {_rel(src)} "
+        f"({len(csvs)} runs; its sweep directory is gone) into {_rel(dest)}")
+    return [dest]
 
 
 # ------------------------------------------------------------------ the command line

@@ -39,7 +39,7 @@ from rdher_jax.runlog import write_text_atomic
 from rdher_jax.tasks import PAPER_TASKS, TASKS
 
 HERE = Path(__file__).resolve().parent
-KINDS = ("ablation", "benchmark", "moving")
+KINDS = ("ablation", "benchmark", "moving", "beyond")
 LAST = 3  # epochs averaged for "final" success and for the bias diagnostic
 BIAS_COLS = ("bias_real", "bias_her", "bias_dher", "bias_unw_real", "bias_unw_her",
              "bias_unw_dher")
@@ -302,7 +302,8 @@ def _md_table(head: Sequence[str], rows: Iterable[Sequence[str]]) -> list[str]:
 
 TITLES = {"ablation": "Ablation of the reward weights (paper section 5.2, Figs. 4-8)",
           "benchmark": "Benchmark of the algorithms (paper section 5.3, Fig. 9, Tables 2-3)",
-          "moving": "HER against DHER on the moving-goal tasks (experiments/moving_goals.py)"}
+          "moving": "HER against DHER on the moving-goal tasks (experiments/moving_goals.py)",
+          "beyond": "RDHER settings against HER beyond the paper (experiments/beyond.py)"}
 WINDOWS = (0.4, 0.8, 1.0)  # moving: mean test success over these fractions of the env steps
 
 
@@ -335,7 +336,7 @@ def _intro(kind: str, profile: str, data: Sequence[SettingData]) -> list[str]:
            "other keys at the trainer's defaults, which are the paper's Table 1):", "",
            *_budget_lines(data), "",
            "Commands:", "", *[f"- `{c}`" for c in commands], ""]
-    if kind == "moving":
+    if kind in ("moving", "beyond"):
         out += ["Each setting is one vmapped sweep of its seeds; the keys a setting adds to the "
                 "budget's are in its `run_info.json` (`extra`).", ""]
     if kind == "ablation":
@@ -459,7 +460,7 @@ def summary_markdown(kind: str, profile: str, data: Sequence[SettingData]) -> st
     out += _md_table(head, rows)
     out.append("")
 
-    if kind == "moving":
+    if kind in ("moving", "beyond"):
         out += ["## Over the budget: mean test success per env-step window (%)", "",
                 "Per seed the mean test success over the epochs that end in the window, then "
                 "mean ± std over seeds. Combined rows: the share of each batch that DHER "

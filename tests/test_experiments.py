@@ -20,6 +20,7 @@ sys.path.insert(0, str(EXP))
 
 import ablation  # noqa: E402
 import benchmark  # noqa: E402
+import beyond  # noqa: E402
 import moving_goals  # noqa: E402
 import profiles  # noqa: E402
 import report  # noqa: E402
@@ -140,6 +141,37 @@ def test_ablation_reads_her_from_the_benchmark(results, tmp_path, capsys):
     meta = json.loads((got / "run_info.json").read_text())
     assert meta["kind"] == "ablation"
     assert meta["sweep"]["dir"].endswith("benchmark/tiny/FetchReach/her")
+
+
+def test_borrowed_setting_read_from_the_results_when_its_sweep_is_gone(results, tmp_path,
+                                                                     capsys):
+    """A borrowed setting whose sweep directory is gone (checkpoints are never committed) is
+    copied from the other experiment's collected results: the CSVs byte for byte, run_info.json
+    relabelled as this experiment's with its source named; with no results either, nothing."""
+    out = tmp_path / "out"
+    shutil.copytree(results["out"] / "benchmark", out / "benchmark")
+    args = ["--profile", "tiny", "--out", str(out), "--runs-dir", str(tmp_path / "no-runs"),
+            "--no-progress", "--eval-episodes", "0", "--split", "--settings", "her",
+            "--her-from-benchmark"]
+    assert ablation.main(args) == 0
+    assert "its sweep directory is gone" in capsys.readouterr().out
+    got, src = out / "ablation/tiny/FetchReach/her", out / "benchmark/tiny/FetchReach/her"
+    assert sorted(p.name for p in got.iterdir()) == ["run_info.json", "s0.csv", "s1.csv"]
+    for seed in (0, 1):
+        assert (got / f"s{seed}.csv").read_bytes() == (src / f"s{seed}.csv").read_bytes()
+    meta, orig = (json.loads((d / "run_info.json").read_text()) for d in (got, src))
+    assert (meta["kind"], meta["setting"], meta["label"], meta["order"]) == \
+        ("ablation", "her", "vanilla HER", 0)
+    assert meta["borrowed_from"]["kind"] == "benchmark"
+    assert meta["borrowed_from"]["results"].endswith("benchmark/tiny/FetchReach/her")
+    assert meta["runs"] == orig["runs"] and meta["command"] == orig["command"]
+    rows = {r["setting"]: r for r in read_csv(out / "ablation/tiny/summary.csv")}
+    assert set(rows) == {"her"} and rows["her"]["seeds"] == "2"
+    # Neither the sweep nor its results: a message, nothing written.
+    shutil.rmtree(out)
+    assert ablation.main(args) == 0
+    assert "nothing to collect: neither the benchmark sweep" in capsys.readouterr().out
+    assert not (out / "ablation/tiny/FetchReach/her").exists()
 
 
 def test_rerun_skips_finished_sweeps(results, capsys):
@@ -299,6 +331,50 @@ def test_moving_goals_plans_each_setting_with_its_own_keys(tmp_path, capsys):
     assert "profile tiny has no budget for FetchPushMoving" in capsys.readouterr().err
 
 
+def test_ablation_reads_the_papers_pair_from_the_benchmark(tmp_path, capsys, one_line_error):
+    args = ["--profile", "paper", "--tasks", "FetchSlide", "FetchPickAndPlace", "--seeds", "3",
+            "--out", str(tmp_path / "out"), "--runs-dir", str(tmp_path / "runs"), "--dry-run",
+            "--split", "--pick-from-benchmark", "--settings", "rdher_lr4_lh0.5",
+            "rdher_lr2_lh1"]
+    assert ablation.main(args) == 0
+    lines = capsys.readouterr().out.splitlines()
+    # Slide's pick is (4, 0.5), PickAndPlace's (2, 1): read; the other pair of each: run.
+    read = [ln for ln in lines if "read from the benchmark sweep" in ln]
+    run = [ln for ln in lines if "(dry run)" in ln]
+    assert [ln.split("]")[0] for ln in read] == ["[FetchSlide rdher", "[FetchPickAndPlace rdher"]
+    assert "/benchmark/paper/FetchSlide/rdher (run by benchmark.py" in read[0]
+    assert len(run) == 2 and "'lambdas=[[2,1]]'" in run[0] and "env=FetchSlide" in run[0]
+    assert "'lambdas=[[4,0.5]]'" in run[1] and "env=FetchPickAndPlace" in run[1]
+    p = subprocess.Popen([sys.executable, str(EXP / "ablation.py"), "--profile", "paper",
+                          "--dry-run", "--pick-from-benchmark"], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    assert "--pick-from-benchmark needs --split" in one_line_error(p)
+
+
+def test_beyond_plans_each_setting_with_its_own_keys(tmp_path, capsys):
+    args = ["--profile", "cpu", "--out", str(tmp_path / "out"), "--runs-dir",
+            str(tmp_path / "runs"), "--dry-run", "--settings", "her", "rdher", "rdher_f0.2",
+            "rdher_f0.2_lr2_lh1", "rdher_plain", "dher_f0.2"]
+    assert beyond.main(args) == 0
+    lines = capsys.readouterr().out.splitlines()
+    read = [ln for ln in lines if "read from the benchmark sweep" in ln]
+    assert [ln.split("]")[0] for ln in read] == ["[FetchPush her", "[FetchPush rdher"]
+    run = {ln.split("]")[0][len("[FetchPush "):]: ln for ln in lines if "(dry run)" in ln}
+    assert list(run) == ["rdher_f0.2", "rdher_f0.2_lr2_lh1", "rdher_plain", "dher_f0.2"]
+    for name, ln in run.items():
+        # The benchmark's budget (preset=fast, sequential, 500,000 steps, 3 seeds), one value
+        # per key: a setting's own dher_fraction replaces the budget's 0.8 in place.
+        assert "env=FetchPush" in ln and "preset=fast" in ln and "epochs=200" in ln
+        assert "overlap=False" in ln and "seeds=3" in ln and ln.count("dher_fraction=") == 1
+        assert ln.endswith(f"/beyond/cpu/FetchPush/{name}")
+    assert "algo=rdher" in run["rdher_f0.2"] and "dher_fraction=0.2" in run["rdher_f0.2"]
+    assert "lambdas" not in run["rdher_f0.2"]
+    assert "'lambdas=[[2,1]]'" in run["rdher_f0.2_lr2_lh1"]
+    assert "dher_fraction=0.8" in run["rdher_plain"] and "replay_k=0" in run["rdher_plain"]
+    assert "algo=dher" in run["dher_f0.2"] and "dher_fraction=0.2" in run["dher_f0.2"]
+    assert not (tmp_path / "out").exists() and not (tmp_path / "runs").exists()
+
+
 def test_windows_of_a_moving_goal_table():
     # Two seeds of 5 epochs of 100 steps: windows (0, 200], (200, 400], (400, 500].
     rows = {s: [{"env_steps": str(100 * (i + 1)), "test_success": str(v)}
@@ -313,7 +389,7 @@ def test_windows_of_a_moving_goal_table():
 
 
 @pytest.mark.parametrize("script", ["ablation.py", "benchmark.py", "report.py",
-                                    "moving_goals.py"])
+                                    "moving_goals.py", "beyond.py"])
 def test_help(script):
     proc = subprocess.run([sys.executable, str(EXP / script), "--help"], capture_output=True,
                           text=True, timeout=60)

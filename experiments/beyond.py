@@ -1,0 +1,89 @@
+"""Beyond the paper: is there an RDHER setting that beats HER on FetchPush under ``preset=fast``?
+
+Under the one learner that learns FetchPush in CPU time (``preset=fast``), RDHER at the paper's
+pair and the authors' DHER share ends 30 points below HER (``experiments/results/RESULTS.md``,
+section 2; the benchmark's ``--profile cpu --tasks FetchPush``). This varies what RESULTS.md
+suspects, one thing at a time, each setting one vmapped sweep of the profile's seeds at the
+benchmark's budget (``cpu``: FetchPush ``preset=fast``, sequential, 500,000 env steps, 3 seeds):
+
+- ``her``, ``rdher``: HER and RDHER (4, 0.5) at the authors' share, read from the benchmark's
+  sweeps of the same budget (or, where those are gone, its collected results), never run here.
+- ``rdher_f0.2``, ``rdher_f0.05``: the paper's pair with a smaller cap on DHER's combined rows,
+  ``dher_fraction`` (at most that times (1 − recent success) of a batch; the authors' 0.8).
+- ``rdher_plain``: the authors' plain mix, the rows that are not combined not relabelled
+  (``replay_k=0``, as in mengf1/DHER ``dher_sample.py``), at their share.
+- ``rdher_f0.2_lr2_lh1``, ``rdher_f0.2_lr1_lh2``: other weights at the 0.2 share;
+  ``dher_f0.2``: no weights at all (DHER, i.e. RDHER at (1, 1)).
+
+Outputs as the other experiments (``experiments/profiles.py``, ``experiments/report.py``):
+``<out>/beyond/<profile>/<task>/<setting>/s<seed>.csv`` with a ``run_info.json``, then
+``summary.md`` (each setting against HER with Welch's test, mean success per env-step window,
+the share of combined rows, the bias diagnostic) and the curves under ``<out>/beyond/<profile>/``.
+Resumable: the sweeps live in ``<runs-dir>/beyond/<profile>/<task>/<setting>``.
+
+    python experiments/beyond.py --profile cpu --settings her rdher rdher_f0.2 rdher_f0.2_lr2_lh1
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from profiles import Setting, add_common_args, run_experiment
+
+KIND = "beyond"
+
+# name -> (label, algo, lambdas (None: the task's paper pair), the sweep's own key=value
+# tokens, the experiment whose sweep it is read from). Shares use a one-value grid so that the
+# run names and the summary carry the value.
+SETTINGS: dict[str, tuple[str, str, tuple | None, tuple[str, ...], str | None]] = {
+    "her": ("HER", "her", None, (), "benchmark"),
+    "rdher": ("RDHER (4, 0.5), share 0.8 (the authors')", "rdher", None, (), "benchmark"),
+    "rdher_plain": ("RDHER (4, 0.5), share 0.8, plain mix (replay_k=0)", "rdher", None,
+                    ("replay_k=0",), None),
+    "rdher_f0.2": ("RDHER (4, 0.5), share 0.2", "rdher", None,
+                   ("dher_fraction=0.2",), None),
+    "rdher_f0.05": ("RDHER (4, 0.5), share 0.05", "rdher", None,
+                    ("dher_fraction=0.05",), None),
+    "rdher_f0.2_lr2_lh1": ("RDHER (2, 1), share 0.2", "rdher", ((2.0, 1.0),),
+                           ("dher_fraction=0.2",), None),
+    "rdher_f0.2_lr1_lh2": ("RDHER (1, 2), share 0.2", "rdher", ((1.0, 2.0),),
+                           ("dher_fraction=0.2",), None),
+    "dher_f0.2": ("DHER, share 0.2", "dher", None, ("dher_fraction=0.2",), None),
+}
+DEFAULT_SETTINGS = ("her", "rdher", "rdher_f0.2", "rdher_f0.2_lr2_lh1")
+
+
+def sweeps_for(names: list[str]):
+    def sweeps(task: str) -> list[tuple]:
+        out = []
+        for name in names:
+            label, algo, lambdas, extra, borrow = SETTINGS[name]
+            order = list(SETTINGS).index(name)
+            setting = Setting(name, label, algo, lambdas[0] if lambdas else None, order)
+            # A borrowed setting is the other experiment's sweep of the algorithm's name.
+            sweep = algo if borrow else name
+            out.append((sweep, algo, lambdas, (setting,), extra, borrow))
+        return out
+
+    return sweeps
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    ap = argparse.ArgumentParser(prog="python experiments/beyond.py",
+                                 description=__doc__.split("\n\n")[0])
+    add_common_args(ap)
+    ap.add_argument("--settings", nargs="+", choices=tuple(SETTINGS),
+                    default=list(DEFAULT_SETTINGS),
+                    help=f"settings, run in the order given (default: "
+                    f"{' '.join(DEFAULT_SETTINGS)}); see the module docstring")
+    args = ap.parse_args(argv)
+    if args.tasks is None:
+        args.tasks = ["FetchPush"]
+    return run_experiment(KIND, "beyond.py", args, argv,
+                          sweeps_for(list(dict.fromkeys(args.settings))))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
