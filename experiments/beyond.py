@@ -29,14 +29,13 @@ from __future__ import annotations
 import argparse
 import sys
 
-from profiles import Setting, add_common_args, run_experiment
+from profiles import NamedSetting, add_common_args, named_sweeps, run_experiment
 
 KIND = "beyond"
 
-# name -> (label, algo, lambdas (None: the task's paper pair), the sweep's own key=value
-# tokens, the experiment whose sweep it is read from). Shares use a one-value grid so that the
-# run names and the summary carry the value.
-SETTINGS: dict[str, tuple[str, str, tuple | None, tuple[str, ...], str | None]] = {
+# name -> (label, algo, lambdas, the sweep's own key=value tokens, the experiment it is read
+# from): profiles.NamedSetting. A share replaces the budget's dher_fraction=0.8.
+SETTINGS: dict[str, NamedSetting] = {
     "her": ("HER", "her", None, (), "benchmark"),
     "rdher": ("RDHER (4, 0.5), share 0.8 (the authors')", "rdher", None, (), "benchmark"),
     "rdher_plain": ("RDHER (4, 0.5), share 0.8, plain mix (replay_k=0)", "rdher", None,
@@ -54,21 +53,6 @@ SETTINGS: dict[str, tuple[str, str, tuple | None, tuple[str, ...], str | None]] 
 DEFAULT_SETTINGS = ("her", "rdher", "rdher_f0.2", "rdher_f0.2_lr2_lh1")
 
 
-def sweeps_for(names: list[str]):
-    def sweeps(task: str) -> list[tuple]:
-        out = []
-        for name in names:
-            label, algo, lambdas, extra, borrow = SETTINGS[name]
-            order = list(SETTINGS).index(name)
-            setting = Setting(name, label, algo, lambdas[0] if lambdas else None, order)
-            # A borrowed setting is the other experiment's sweep of the algorithm's name.
-            sweep = algo if borrow else name
-            out.append((sweep, algo, lambdas, (setting,), extra, borrow))
-        return out
-
-    return sweeps
-
-
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     ap = argparse.ArgumentParser(prog="python experiments/beyond.py",
@@ -82,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.tasks is None:
         args.tasks = ["FetchPush"]
     return run_experiment(KIND, "beyond.py", args, argv,
-                          sweeps_for(list(dict.fromkeys(args.settings))))
+                          named_sweeps(SETTINGS, args.settings))
 
 
 if __name__ == "__main__":

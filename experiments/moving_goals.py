@@ -35,36 +35,25 @@ from __future__ import annotations
 import argparse
 import sys
 
-from profiles import Setting, add_common_args, run_experiment
+from profiles import NamedSetting, add_common_args, named_sweeps, run_experiment
 
 KIND = "moving"
 
-# name -> (label, algo, the sweep's own key=value tokens). The shares use a one-value grid so
-# that the run names and summary carry the value; the authors' share is written out, since
-# preset=fast takes another.
-SETTINGS: dict[str, tuple[str, str, tuple[str, ...]]] = {
-    "her": ("HER", "her", ()),
-    "dher": ("DHER (share 0.8, 'future' mix)", "dher", ("dher_fraction=0.8",)),
-    "dher_plain": ("DHER (share 0.8, authors' plain mix, replay_k=0)", "dher",
-                   ("dher_fraction=0.8", "replay_k=0")),
-    "dher_f0.4": ("DHER (share 0.4)", "dher", ("grid.dher_fraction=[0.4]",)),
-    "dher_f0.2": ("DHER (share 0.2)", "dher", ("grid.dher_fraction=[0.2]",)),
-    "rdher": ("RDHER (share 0.8)", "rdher", ("dher_fraction=0.8",)),
-    "rdher_f0.2": ("RDHER (share 0.2)", "rdher", ("grid.dher_fraction=[0.2]",)),
+# name -> profiles.NamedSetting: label, algo, λ pairs, the sweep's own key=value tokens, and
+# the experiment it is read from (none here). The shares use a one-value grid so that the run
+# names and summary carry the value; the authors' share is written out, since preset=fast
+# takes another.
+SETTINGS: dict[str, NamedSetting] = {
+    "her": ("HER", "her", None, (), None),
+    "dher": ("DHER (share 0.8, 'future' mix)", "dher", None, ("dher_fraction=0.8",), None),
+    "dher_plain": ("DHER (share 0.8, authors' plain mix, replay_k=0)", "dher", None,
+                   ("dher_fraction=0.8", "replay_k=0"), None),
+    "dher_f0.4": ("DHER (share 0.4)", "dher", None, ("grid.dher_fraction=[0.4]",), None),
+    "dher_f0.2": ("DHER (share 0.2)", "dher", None, ("grid.dher_fraction=[0.2]",), None),
+    "rdher": ("RDHER (share 0.8)", "rdher", None, ("dher_fraction=0.8",), None),
+    "rdher_f0.2": ("RDHER (share 0.2)", "rdher", None, ("grid.dher_fraction=[0.2]",), None),
 }
 DEFAULT_SETTINGS = ("her", "dher", "rdher")
-
-
-def sweeps_for(names: list[str]):
-    def sweeps(task: str) -> list[tuple]:
-        out = []
-        for name in names:
-            label, algo, extra = SETTINGS[name]
-            order = list(SETTINGS).index(name)
-            out.append((name, algo, None, (Setting(name, label, algo, None, order),), extra))
-        return out
-
-    return sweeps
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -80,7 +69,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.tasks is None:
         args.tasks = ["FetchReachMoving"]
     return run_experiment(KIND, "moving_goals.py", args, argv,
-                          sweeps_for(list(dict.fromkeys(args.settings))))
+                          named_sweeps(SETTINGS, args.settings))
 
 
 if __name__ == "__main__":

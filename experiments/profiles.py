@@ -238,6 +238,30 @@ def make_jobs(kind: str, profile: str, tasks: Sequence[str], runs_dir: Path,
     return jobs
 
 
+# A named setting of a one-sweep-per-setting experiment (moving_goals.py, beyond.py): its
+# label, algorithm, λ pairs (None: the task's paper pair), the sweep's own key=value tokens,
+# and the experiment whose sweep of the algorithm's name it is read from (None: run here).
+NamedSetting = tuple[str, str, tuple[tuple[float, float], ...] | None, tuple[str, ...],
+                     str | None]
+
+
+def named_sweeps(table: Mapping[str, NamedSetting],
+                 names: Sequence[str]) -> Callable[[str], list[tuple]]:
+    """``sweeps(task)`` for :func:`make_jobs`: one sweep per name of ``table``, in the order
+    given, named by the setting (a borrowed one by its algorithm, as the lending experiment
+    names it), ordered in tables as ``table`` lists them."""
+    def sweeps(task: str) -> list[tuple]:
+        out = []
+        for name in dict.fromkeys(names):
+            label, algo, lambdas, extra, borrow = table[name]
+            setting = Setting(name, label, algo, lambdas[0] if lambdas else None,
+                              list(table).index(name))
+            out.append((algo if borrow else name, algo, lambdas, (setting,), extra, borrow))
+        return out
+
+    return sweeps
+
+
 def _finished(sweep_dir: Path, epochs: int) -> bool:
     """Every run of the sweep has ``epochs`` epochs logged, or has diverged."""
     try:
@@ -439,8 +463,6 @@ def collect_borrowed_results(job: Job, out_root: Path, log=print) -> list[Path]:
             f"{job.sweep_dir} nor its results {src} exist (run {job.sweep_kind}.py first)")
         return []
     dest = out_root / job.kind / job.profile / job.task / s.name
-    if dest.resolve() == src.resolve():
-        return [dest]
     dest.mkdir(parents=True, exist_ok=True)
     csvs = {p.name: p.read_text(encoding="utf-8") for p in sorted(src.glob("s*.csv"))}
     for stale in dest.glob("s*.csv"):
