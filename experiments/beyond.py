@@ -14,6 +14,12 @@ benchmark's budget (``cpu``: FetchPush ``preset=fast``, sequential, 500,000 env 
   (``replay_k=0``, as in mengf1/DHER ``dher_sample.py``), at their share.
 - ``rdher_f0.2_lr2_lh1``, ``rdher_f0.2_lr1_lh2``: other weights at the 0.2 share;
   ``dher_f0.2``: no weights at all (DHER, i.e. RDHER at (1, 1)).
+- ``rdher_clip``: the paper's pair and share with every row's critic target clipped to
+  baselines' [−1/(1−γ), 0] (``target_clip=unweighted``), what weighting the sampled rewards in
+  the baselines-based code the authors built on would give, instead of each row's own range.
+
+The settings run on any task and profile (``--tasks``, ``--profile``), against the benchmark's
+HER and RDHER of that task and profile: e.g. ``--profile paper --tasks FetchSlide --seeds 3``.
 
 Outputs as the other experiments (``experiments/profiles.py``, ``experiments/report.py``):
 ``<out>/beyond/<profile>/<task>/<setting>/s<seed>.csv`` with a ``run_info.json``, then
@@ -49,6 +55,8 @@ SETTINGS: dict[str, NamedSetting] = {
     "rdher_f0.2_lr1_lh2": ("RDHER (1, 2), share 0.2", "rdher", ((1.0, 2.0),),
                            ("dher_fraction=0.2",), None),
     "dher_f0.2": ("DHER, share 0.2", "dher", None, ("dher_fraction=0.2",), None),
+    "rdher_clip": ("RDHER (the paper's pair), share 0.8, unweighted clip", "rdher", None,
+                   ("target_clip=unweighted",), None),
 }
 DEFAULT_SETTINGS = ("her", "rdher", "rdher_f0.2", "rdher_f0.2_lr2_lh1")
 

@@ -39,6 +39,7 @@ SCENES: tuple[str, ...] = ("auto", "original", "mjx")
 TERMINAL_RULES: tuple[str, ...] = ("none", "success", "exact")
 COMPUTE_DTYPES: tuple[str, ...] = ("float32", "bfloat16")
 PHYSICS_CALLS: tuple[str, ...] = ("ffi", "callback")
+TARGET_CLIPS: tuple[str, ...] = ("weighted", "unweighted")  # = ddpg.TARGET_CLIPS
 
 # Fields whose value may differ between a run and its continuation: they change neither the
 # learning problem nor the shapes of what the checkpoint holds.
@@ -195,6 +196,12 @@ class Config:
         "exact (a transition whose goal is exactly the next achieved goal: HER rows relabelled "
         "with the very next step, DRLib's rule)"
     )
+    target_clip: str = _f(
+        "weighted", "the critic target's clip range: weighted ([-lambda/(1-gamma), 0], the range "
+        "of each row's weighted return) or unweighted ([-1/(1-gamma), 0] for every row: "
+        "baselines' clip_return, kept by code that weights the sampled rewards as the paper's "
+        "Algorithm 1 does); the same for unweighted algorithms"
+    )
     replay_k: int = _f(4, "HER ratio: goals are relabelled with probability 1 - 1/(1 + k)")
     lambda_r: float | None = _f(
         None, "reward weight on real transitions (>= 0); null: the paper's per-task value for "
@@ -332,6 +339,7 @@ def validate(cfg: Config) -> Config:
     _one_of("scene", cfg.scene, SCENES)
     _one_of("terminal", cfg.terminal, TERMINAL_RULES)
     _one_of("compute_dtype", cfg.compute_dtype, COMPUTE_DTYPES)
+    _one_of("target_clip", cfg.target_clip, TARGET_CLIPS)
     _one_of("physics_call", cfg.physics_call, PHYSICS_CALLS)
     _check(cfg.terminal != "exact" or cfg.n_step == 1, "terminal=exact needs n_step=1")
     if cfg.preset is not None:

@@ -7,6 +7,7 @@ preprocessing constants are static and fixed by `make_ddpg`.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from typing import Any, NamedTuple, Protocol
 
@@ -113,17 +114,25 @@ class DDPG(NamedTuple):
     target_update: Callable[..., DDPGState]
 
 
+# The critic target's clip range: per row's weight, or baselines' unweighted clip_return.
+TARGET_CLIPS: tuple[str, ...] = ("weighted", "unweighted")
+
+
 def critic_target(
     reward: jax.Array,
     q_next: jax.Array,
     hindsight: jax.Array,
     hparams: DDPGParams,
     discount: jax.Array | None = None,
+    clip: str = "weighted",
 ) -> jax.Array:
     """Clipped, reward-weighted TD target y = clip(lam * r + gamma * q_next, -lam / (1 - gamma), 0).
 
     lam is lambda_h on hindsight rows and lambda_r on real rows. With rewards in {-1, 0} the
-    weighted return lies in [-lam / (1 - gamma), 0], so the clip range follows each row's weight.
+    weighted return lies in [-lam / (1 - gamma), 0], so by default (``clip="weighted"``) the clip
+    range follows each row's weight. ``clip="unweighted"`` clips every row to
+    [-1 / (1 - gamma), 0] whatever its weight: baselines' ``clip_return``, which weighting the
+    sampled rewards inside baselines-based code (as the paper's Algorithm 1 does) would keep.
     There is no done mask: Fetch episodes end by time limit, which is not termination.
 
     Args:
@@ -134,13 +143,17 @@ def critic_target(
         discount: optional (B,) factor on q_next in place of gamma: gamma^m for n-step rows,
             whose reward is already the discounted sum of m rewards, and 0 for rows that do not
             bootstrap (``relabel.mark_terminal``); the clip range keeps gamma's bound.
+        clip: "weighted" or "unweighted" (see above).
 
     Returns:
         Targets (B,), with gradients stopped.
     """
+    if clip not in TARGET_CLIPS:
+        raise ValueError(f"clip must be one of {TARGET_CLIPS}, got {clip!r}")
     lam = jnp.where(hindsight, hparams.lambda_h, hparams.lambda_r)
     y = lam * reward + (hparams.gamma if discount is None else discount) * q_next
-    y = jnp.clip(y, -lam / (1.0 - hparams.gamma), 0.0)
+    bound = lam if clip == "weighted" else jnp.ones_like(lam)
+    y = jnp.clip(y, -bound / (1.0 - hparams.gamma), 0.0)
     return jax.lax.stop_gradient(y)
 
 
@@ -176,6 +189,7 @@ def make_ddpg(
     policy_delay: int = 1,
     layer_norm: bool = False,
     compute_dtype: str = "float32",
+    target_clip: str = "weighted",
 ) -> DDPG:
     """Builds the DDPG functions for fixed dimensions and architecture.
 
@@ -196,9 +210,13 @@ def make_ddpg(
         layer_norm: LayerNorm in the critic's hidden layers.
         compute_dtype: the hidden layers' matmul dtype, "float32" or "bfloat16" (parameters,
             optimiser state, losses and the output layers stay float32).
+        target_clip: the critic target's clip range, "weighted" (per row, [-lam/(1-gamma), 0])
+            or "unweighted" ([-1/(1-gamma), 0] for every row); see `critic_target`.
     Returns:
         A DDPG of pure, jittable functions.
     """
+    if target_clip not in TARGET_CLIPS:
+        raise ValueError(f"target_clip must be one of {TARGET_CLIPS}, got {target_clip!r}")
     if compute_dtype not in ("float32", "bfloat16"):
         raise ValueError(f"compute_dtype must be float32 or bfloat16, got {compute_dtype!r}")
     dtype = None if compute_dtype == "float32" else jnp.bfloat16  # None: the float32 path
@@ -291,7 +309,8 @@ def make_ddpg(
             eps = jnp.clip(eps, -noise_clip * max_u, noise_clip * max_u)
             next_action = jnp.clip(next_action + eps, -max_u, max_u)
         q_next = critic.apply(state.target_critic_params, next_obs, next_goal, next_action)
-        y = critic_target(batch.reward, q_next, batch.hindsight, hparams, batch.discount)
+        y = critic_target(batch.reward, q_next, batch.hindsight, hparams, batch.discount,
+                          clip=target_clip)
         q = critic.apply(critic_params, obs, goal, batch.action)
         return jnp.mean(jnp.square(q - y)), jnp.mean(q)
 
@@ -385,7 +404,7 @@ def make_ddpg(
         update_normaliser=update_normaliser,
         act=act,
         explore=explore,
-        critic_target=critic_target,
+        critic_target=functools.partial(critic_target, clip=target_clip),
         critic_loss=critic_loss,
         actor_loss=actor_loss,
         update=update,

@@ -135,7 +135,7 @@ def make_program(cfg, env) -> Program:
         obs_dim, goal_dim, act_dim, hidden=(cfg.hidden,) * cfg.layers,
         target_noise=cfg.target_noise, noise_clip=cfg.noise_clip,
         policy_delay=cfg.policy_delay, layer_norm=cfg.layer_norm,
-        compute_dtype=cfg.compute_dtype,
+        compute_dtype=cfg.compute_dtype, target_clip=cfg.target_clip,
     )
     n_envs, n_test = cfg.num_envs, cfg.n_test_rollouts
     v_reset, v_step = jax.vmap(env.reset), jax.vmap(env.step)

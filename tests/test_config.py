@@ -94,6 +94,7 @@ def test_overrides_are_typed() -> None:
         (["algo=td3"], "unknown algo 'td3'"),
         (["backend=cuda"], "unknown backend 'cuda'"),
         (["scene=new"], "unknown scene 'new'"),
+        (["target_clip=none"], "unknown target_clip 'none'"),
         (["epochs=0"], "epochs must be a positive integer"),
         (["batch_size=-1"], "batch_size must be a positive integer"),
         (["seed=-1"], "seed must be in [0, 2**32)"),
@@ -331,3 +332,11 @@ def test_wants_overlap_reads_the_command_line_and_its_preset(tmp_path, monkeypat
     assert wants([f"resume={run}"])
     (run / "config.yaml").write_text("overlap: false\n")
     assert not wants([f"resume={run}"])
+
+
+def test_target_clips_match_the_learner() -> None:
+    from rdher_jax.config import TARGET_CLIPS
+    from rdher_jax.ddpg import TARGET_CLIPS as LEARNER_CLIPS
+
+    assert TARGET_CLIPS == LEARNER_CLIPS
+    assert Config().target_clip == "weighted"  # the committed rows' clip

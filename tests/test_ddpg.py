@@ -488,3 +488,68 @@ def test_bfloat16_matmuls_keep_losses_and_updates_close_to_float32():
 def test_unknown_compute_dtype_is_refused():
     with pytest.raises(ValueError, match="compute_dtype must be float32 or bfloat16"):
         make_ddpg(OBS, GOAL, ACT, compute_dtype="float16")
+
+
+def test_unweighted_target_clip():
+    """target_clip=unweighted: every row's target clipped to [-1/(1-gamma), 0] whatever its
+    weight (baselines' clip_return), here 4 / 0.5 at gamma 0.9: both bounds -10, where the
+    weighted clip has -40 and -5."""
+    h = DDPGParams.default(lambda_r=4.0, lambda_h=0.5, gamma=0.9)
+    table = np.array(
+        # reward, q_next, hindsight, expected y (unweighted), expected y (weighted)
+        [
+            [-1.0, -20.0, 0, -10.0, -22.0],  # -4 - 18: inside [-40, 0], outside [-10, 0]
+            [-1.0, -20.0, 1, -10.0, -5.0],  # -0.5 - 18
+            [-1.0, -2.0, 0, -5.8, -5.8],
+            [-1.0, -2.0, 1, -2.3, -2.3],
+            [0.0, -8.0, 1, -7.2, -5.0],
+            [0.0, 3.0, 0, 0.0, 0.0],
+        ],
+        np.float32,
+    )
+    reward, q_next = jnp.asarray(table[:, 0]), jnp.asarray(table[:, 1])
+    hindsight = jnp.asarray(table[:, 2] > 0)
+    for clip, col in (("unweighted", 3), ("weighted", 4)):
+        y = critic_target(reward, q_next, hindsight, h, clip=clip)
+        np.testing.assert_allclose(np.asarray(y), table[:, col], rtol=1e-6, atol=1e-6)
+    with pytest.raises(ValueError, match="clip must be one of"):
+        critic_target(reward, q_next, hindsight, h, clip="none")
+
+
+def test_target_clip_reaches_the_critic_loss():
+    """make_ddpg(target_clip=...) is what critic_loss uses: against numpy, both ways, on a
+    batch whose weighted targets go below -1/(1-gamma)."""
+    h = DDPGParams.default(lambda_r=4.0, lambda_h=0.5, gamma=0.9)
+    norm_data = _batch(2)
+    batch = _batch(3)
+    batch = batch.replace(reward=-jnp.ones_like(batch.reward))
+    for clip in ("weighted", "unweighted"):
+        d = make_ddpg(OBS, GOAL, ACT, hidden=(8, 8), max_u=MAX_U, clip_obs=CLIP_OBS,
+                      norm_eps=NORM_EPS, norm_clip=NORM_CLIP, target_clip=clip)
+        state = d.init(jax.random.key(0), h)
+        state = d.update_normaliser(state, norm_data.obs, norm_data.goal)
+        # A pessimistic target critic: shift its output bias so q_next is about -30.
+        tc = jax.tree.map(lambda x: x, state.target_critic_params)
+        tc["params"]["mlp"]["out"]["bias"] = tc["params"]["mlp"]["out"]["bias"] - 30.0
+        state = state.replace(target_critic_params=tc)
+        o2, g2 = (np.asarray(x, np.float64) for x in d.normalise(state, batch.next_obs,
+                                                                batch.next_goal))
+        a2 = _np_actor(state.target_actor_params, o2, g2, MAX_U)
+        q_next = _np_critic(state.target_critic_params, o2, g2, a2, MAX_U)
+        lam = np.where(np.asarray(batch.hindsight), 0.5, 4.0)
+        bound = lam if clip == "weighted" else np.ones_like(lam)
+        y = np.clip(lam * np.asarray(batch.reward) + 0.9 * q_next, -bound / 0.1, 0.0)
+        o, g = (np.asarray(x, np.float64) for x in d.normalise(state, batch.obs, batch.goal))
+        q = _np_critic(state.critic_params, o, g, np.asarray(batch.action, np.float64), MAX_U)
+        c_loss, _ = d.critic_loss(state.critic_params, state, batch, h)
+        assert float(c_loss) == pytest.approx(np.mean((q - y) ** 2), rel=1e-4)
+        np.testing.assert_allclose(
+            np.asarray(d.critic_target(batch.reward, jnp.asarray(q_next, jnp.float32),
+                                       batch.hindsight, h)), y, rtol=1e-5, atol=1e-4)
+        if clip == "unweighted":
+            assert np.any(lam * -1.0 + 0.9 * q_next < -10.0)  # the bound mattered
+
+
+def test_unknown_target_clip_is_refused():
+    with pytest.raises(ValueError, match="target_clip must be one of"):
+        make_ddpg(OBS, GOAL, ACT, target_clip="none")
