@@ -22,7 +22,9 @@ experiment). The profile's name, doc and the task's budget are written into ever
 
 Sweep directories (with checkpoints) live under ``<runs-dir>/<kind>/<profile>/<task>/<sweep>``
 and are what makes a long experiment resumable: :func:`run_job` continues an unfinished sweep
-(``resume=``), skips a finished one, and starts a missing one.
+(``resume=``), skips a finished one, and starts a missing one. A setting too long for one
+sitting can be run in pieces of its seeds: ``--seeds 3`` for seeds 0-2, then ``--seeds 5
+--first-seed 3`` for seeds 3-4 in ``<sweep>.s3-4``; collecting merges the pieces.
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ import csv
 import io
 import json
 import os
+import re
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -191,10 +194,29 @@ class Job:
     # curve from the benchmark's HER sweep: the same program, seeds and budget). Such a sweep
     # is collected here, never run: its own script runs it.
     sweep_kind: str | None = None
+    # > 0: this call runs only seeds first_seed..seeds-1, as a sweep of their own (a piece).
+    first_seed: int = 0
+
+    @property
+    def _task_dir(self) -> Path:
+        return self.runs_dir / (self.sweep_kind or self.kind) / self.profile / self.task
 
     @property
     def sweep_dir(self) -> Path:
-        return self.runs_dir / (self.sweep_kind or self.kind) / self.profile / self.task / self.name
+        """The directory this call runs in: ``<name>``, or for a piece of the seeds
+        ``<name>.s<first>-<last>``."""
+        if self.first_seed:
+            return self._task_dir / f"{self.name}.s{self.first_seed}-{self.seeds - 1}"
+        return self._task_dir / self.name
+
+    def piece_dirs(self) -> list[Path]:
+        """Every existing sweep directory of this setting, whichever call ran it: the whole
+        sweep's (``<name>``) first, then its pieces (``<name>.s<first>-<last>``) by first seed."""
+        d = self._task_dir
+        piece = re.compile(rf"{re.escape(self.name)}\.s(\d+)-(\d+)")
+        found = sorted((int(m.group(1)), p) for p in (d.iterdir() if d.is_dir() else ())
+                       if (m := piece.fullmatch(p.name)) and p.is_dir())
+        return [p for p in [d / self.name, *(p for _, p in found)] if p.is_dir()]
 
     @property
     def borrowed(self) -> bool:
@@ -214,17 +236,22 @@ class Job:
         if self.lambdas is not None:
             out.append("lambdas=[" + ",".join(f"[{num(a)},{num(b)}]" for a, b in self.lambdas)
                        + "]")
-        out += [f"seeds={self.seeds}", f"progress={str(progress).lower()}"]
+        if self.first_seed:
+            out.append("seeds=[" + ",".join(map(str, range(self.first_seed, self.seeds))) + "]")
+        else:
+            out.append(f"seeds={self.seeds}")
+        out.append(f"progress={str(progress).lower()}")
         return out
 
 
 def make_jobs(kind: str, profile: str, tasks: Sequence[str], runs_dir: Path,
               seeds: int | None, epochs: int | None,
-              sweeps: Callable[[str], list[tuple]]) -> list[Job]:
+              sweeps: Callable[[str], list[tuple]], first_seed: int = 0) -> list[Job]:
     """One Job per (task, sweep) given by ``sweeps(task)`` -> [(name, algo, lambdas, outputs)],
     or ``(name, algo, lambdas, outputs, extra)`` with ``extra`` the sweep's own key=value
     tokens, or ``(..., extra, borrow)`` with ``borrow`` the kind of another experiment whose
-    sweep of that name is read (at the budget's own seed count, as that experiment runs it)."""
+    sweep of that name is read (at the budget's own seed count, as that experiment runs it).
+    ``first_seed`` > 0 makes each sweep run here a piece: seeds first_seed..N-1 only."""
     jobs = []
     for task in tasks:
         b = budget_for(profile, task)
@@ -232,9 +259,12 @@ def make_jobs(kind: str, profile: str, tasks: Sequence[str], runs_dir: Path,
         for name, algo, lambdas, outputs, *more in sweeps(task):
             extra = tuple(more[0]) if more else ()
             borrow = more[1] if len(more) > 1 else None
-            jobs.append(Job(kind, profile, task, name, algo, lambdas,
-                            b.seeds if borrow else (seeds or b.seeds), settings, outputs,
-                            runs_dir, b, extra, borrow))
+            n = b.seeds if borrow else (seeds or b.seeds)
+            if first_seed and not borrow and first_seed >= n:
+                raise ConfigError(f"--first-seed {first_seed} leaves no seed of {task}'s {n} "
+                                  f"(seeds 0..{n - 1}); raise --seeds")
+            jobs.append(Job(kind, profile, task, name, algo, lambdas, n, settings, outputs,
+                            runs_dir, b, extra, borrow, 0 if borrow else first_seed))
     return jobs
 
 
@@ -363,19 +393,35 @@ def collect(job: Job, out_root: Path, command: str, log=print,
     run_info.json beside the best 10-episode epoch of its metrics. Only in a one-process run:
     the checkpoints of a multi-process sweep are tested by ``--collect-only`` afterwards.
 
+    A setting run in pieces (``--first-seed``) is collected from all of them: each seed from
+    the first directory that holds it (the whole sweep's, then the pieces'), the wall clock
+    summed over the pieces, each piece recorded under ``pieces``.
+
     Small text files only; checkpoints stay in the sweep directory. Returns the setting dirs.
     """
     from rdher_jax import distributed
 
-    d = job.sweep_dir
-    if job.borrowed and not (d / "summary.json").is_file():
+    loaded = []  # (sweep dir, its runs, its run_info) of the whole sweep and of each piece
+    for p in job.piece_dirs():
+        try:
+            loaded.append((p, json.loads((p / "summary.json").read_text(encoding="utf-8"))["runs"],
+                           json.loads((p / "run_info.json").read_text(encoding="utf-8"))))
+        except (OSError, ValueError, KeyError):
+            continue
+    if job.borrowed and not loaded:
         return collect_borrowed_results(job, out_root, log)
-    try:
-        rows = json.loads((d / "summary.json").read_text(encoding="utf-8"))["runs"]
-        info = json.loads((d / "run_info.json").read_text(encoding="utf-8"))
-    except (OSError, ValueError, KeyError):
-        log(f"[{job.task} {job.name}] nothing to collect yet in {d}")
+    if not loaded:
+        log(f"[{job.task} {job.name}] nothing to collect yet in {job.sweep_dir}")
         return []
+    d, _, info = loaded[0]
+    # Each seed from the first directory that has it (the whole sweep before its pieces).
+    rows, seen = [], set()
+    for p, runs_p, _ in loaded:
+        for r in runs_p:
+            key = (r["lambda_r"], r["lambda_h"], r["seed"])
+            if key not in seen:
+                seen.add(key)
+                rows.append({**r, "_dir": p})
     written = []
     for s in job.outputs:
         mine = [r for r in rows
@@ -383,13 +429,13 @@ def collect(job: Job, out_root: Path, command: str, log=print,
         dest = out_root / job.kind / job.profile / job.task / s.name
         dest.mkdir(parents=True, exist_ok=True)
         runs: dict[str, Any] = {}
-        wall = 0.0
+        walls: dict[Path, float] = {}
         try:
             before = json.loads((dest / "run_info.json").read_text(encoding="utf-8"))["runs"]
         except (OSError, ValueError, KeyError):
             before = {}
         for r in mine:
-            src = d / r["run"] / "metrics.csv"
+            src = r["_dir"] / r["run"] / "metrics.csv"
             if not src.is_file():
                 continue
             text = src.read_text(encoding="utf-8")
@@ -397,7 +443,7 @@ def collect(job: Job, out_root: Path, command: str, log=print,
             if last is None:
                 continue
             write_text_atomic(dest / f"s{r['seed']}.csv", text)
-            wall = max(wall, float(last["wall_time"]))
+            walls[r["_dir"]] = max(walls.get(r["_dir"], 0.0), float(last["wall_time"]))
             name = f"s{r['seed']}"
             runs[name] = {"epochs": int(last["epoch"]),
                           "env_steps": int(float(last["env_steps"])),
@@ -406,7 +452,8 @@ def collect(job: Job, out_root: Path, command: str, log=print,
             done = int(last["epoch"]) >= job.epochs or r["status"] != "ok"
             cached = before.get(name, {}).get("best_policy")
             if done and eval_episodes > 0 and distributed.count() == 1:
-                ev = best_policy_eval(d / r["run"], int(r["seed"]), eval_episodes, cached)
+                ev = best_policy_eval(r["_dir"] / r["run"], int(r["seed"]), eval_episodes,
+                                      cached)
                 if ev is not None:
                     if ev is not cached:
                         log(f"[{job.task} {s.name} {name}] best policy (epoch {ev['epoch']}) "
@@ -419,6 +466,10 @@ def collect(job: Job, out_root: Path, command: str, log=print,
             if stale.stem not in runs:
                 stale.unlink()
         pair = (mine[0]["lambda_r"], mine[0]["lambda_h"]) if mine else (None, None)
+        # Runs of one sweep are one program: they share its wall clock (first epoch's
+        # compilation included, process start and env build not). Pieces add up.
+        wall = sum(walls.values())
+        n_runs = sum(i.get("n_runs") or 0 for p, _, i in loaded if p in walls)
         meta = {
             "kind": job.kind, "profile": job.profile, "task": job.task, "setting": s.name,
             "label": s.label, "algo": s.algo, "order": s.order,
@@ -430,16 +481,20 @@ def collect(job: Job, out_root: Path, command: str, log=print,
             "command": command,
             "extra": list(job.extra),
             "sweep": {"name": job.name, "dir": _rel(d), "command": info.get("command"),
-                      "runs": info.get("n_runs"), "program": info.get("program"),
+                      "runs": n_runs if len(walls) > 1 else info.get("n_runs"),
+                      "program": info.get("program"),
                       "state_bytes_per_run": info.get("state_bytes_per_run")},
             "hardware": {k: info.get(k) for k in HARDWARE_KEYS},
             "versions": info.get("versions"),
             "runs": runs,
-            # Runs of one sweep are one program: they share its wall clock (first epoch's
-            # compilation included, process start and env build not).
             "wall_clock_s": wall,
-            "wall_clock_per_run_s": wall / info["n_runs"] if info.get("n_runs") else None,
+            "wall_clock_per_run_s": wall / n_runs if n_runs else None,
         }
+        if len(walls) > 1:  # run in pieces (--first-seed): each piece's own record
+            meta["pieces"] = [
+                {"dir": _rel(p), "command": i.get("command"), "runs": i.get("n_runs"),
+                 "wall_clock_s": walls[p], "hardware": {k: i.get(k) for k in HARDWARE_KEYS}}
+                for p, _, i in loaded if p in walls]
         write_text_atomic(dest / "run_info.json", json.dumps(meta, indent=1, sort_keys=True) + "\n")
         written.append(dest)
     log(f"[{job.task} {job.name}] collected {len(job.outputs)} setting(s) into "
@@ -494,6 +549,11 @@ def add_common_args(ap: Any) -> None:
                     "(tiny, cpu: FetchReach; paper: all four)")
     ap.add_argument("--seeds", type=int, default=None,
                     help="seeds 0..N-1; default: the profile's for the task")
+    ap.add_argument("--first-seed", type=int, default=0, metavar="K",
+                    help="run only seeds K..N-1 of the N (--seeds, or the profile's), as a sweep "
+                    "of their own (<sweep>.s<K>-<N-1>), to split a setting that does not fit "
+                    "in one sitting; collecting merges every piece of a setting (default 0: "
+                    "all N in one sweep)")
     ap.add_argument("--epochs", type=int, default=None,
                     help="override the profile's epoch count (an unfinished or finished sweep "
                     "is continued to it)")
@@ -554,8 +614,10 @@ def run_experiment(kind: str, script: str, args: Any, argv: Sequence[str],
             distributed.initialize(spec)
         main = distributed.is_main()
         tasks = list(dict.fromkeys(args.tasks or PROFILES[args.profile].default_tasks))
+        if args.first_seed < 0:
+            raise ConfigError(f"--first-seed must be >= 0, got {args.first_seed}")
         jobs = make_jobs(kind, args.profile, tasks, args.runs_dir, args.seeds, args.epochs,
-                         sweeps)
+                         sweeps, args.first_seed)
         progress = sys.stderr.isatty() if args.progress is None else args.progress
         command = shlex.join(["python", f"experiments/{script}", *argv])
         for task in tasks:

@@ -174,6 +174,38 @@ def test_borrowed_setting_read_from_the_results_when_its_sweep_is_gone(results, 
     assert not (out / "ablation/tiny/FetchReach/her").exists()
 
 
+def test_a_setting_run_in_pieces_is_collected_as_one(results, tmp_path, capsys):
+    """--first-seed K: seeds K..N-1 run as a sweep of their own (<sweep>.s<K>-<N-1>) beside the
+    whole sweep's seeds; collecting merges them into one setting, the earlier seeds' CSVs
+    unchanged, the wall clock summed over the pieces, each piece recorded."""
+    runs, out = tmp_path / "runs", tmp_path / "out"
+    shutil.copytree(results["runs"] / "benchmark", runs / "benchmark")  # HER's seeds 0-1
+    args = ["--profile", "tiny", "--out", str(out), "--runs-dir", str(runs), "--no-progress",
+            "--eval-episodes", "0", "--algos", "her"]
+    assert benchmark.main([*args, "--seeds", "3", "--first-seed", "2"]) == 0
+    assert (runs / "benchmark/tiny/FetchReach/her.s2-2/sweep.yaml").is_file()
+    d = out / "benchmark/tiny/FetchReach/her"
+    whole = results["out"] / "benchmark/tiny/FetchReach/her"
+    assert sorted(p.name for p in d.glob("s*.csv")) == ["s0.csv", "s1.csv", "s2.csv"]
+    for name in ("s0.csv", "s1.csv"):
+        assert (d / name).read_text() == (whole / name).read_text()
+    assert [r["epoch"] for r in read_csv(d / "s2.csv")] == ["1", "2"]
+    meta = json.loads((d / "run_info.json").read_text())
+    assert meta["seeds"] == [0, 1, 2] and meta["sweep"]["runs"] == 3
+    assert [p["runs"] for p in meta["pieces"]] == [2, 1]
+    assert meta["pieces"][1]["dir"].endswith("her.s2-2")
+    assert meta["wall_clock_s"] == pytest.approx(sum(p["wall_clock_s"] for p in meta["pieces"]))
+    assert meta["wall_clock_per_run_s"] == pytest.approx(meta["wall_clock_s"] / 3)
+    capsys.readouterr()
+    assert benchmark.main([*args, "--seeds", "3", "--first-seed", "2", "--dry-run"]) == 0
+    assert "finished (2 epochs)" in capsys.readouterr().out
+    assert benchmark.main([*args, "--seeds", "5", "--first-seed", "3", "--dry-run"]) == 0
+    line = [ln for ln in capsys.readouterr().out.splitlines() if "(dry run)" in ln][0]
+    assert "'seeds=[3,4]'" in line and line.endswith("/benchmark/tiny/FetchReach/her.s3-4")
+    assert benchmark.main([*args, "--seeds", "2", "--first-seed", "2", "--dry-run"]) == 2
+    assert "--first-seed 2 leaves no seed" in capsys.readouterr().err
+
+
 def test_rerun_skips_finished_sweeps(results, capsys):
     csv_path = results["out"] / "ablation/tiny/FetchReach/her/s0.csv"
     before = csv_path.read_bytes()
