@@ -39,7 +39,9 @@ SCENES: tuple[str, ...] = ("auto", "original", "mjx")
 TERMINAL_RULES: tuple[str, ...] = ("none", "success", "exact")
 COMPUTE_DTYPES: tuple[str, ...] = ("float32", "bfloat16")
 PHYSICS_CALLS: tuple[str, ...] = ("ffi", "callback")
-TARGET_CLIPS: tuple[str, ...] = ("weighted", "unweighted")  # = ddpg.TARGET_CLIPS
+# The critic target's clip range (ddpg.critic_target): each row's weighted range, or
+# baselines' unweighted clip_return for every row.
+TARGET_CLIPS: tuple[str, ...] = ("weighted", "unweighted")
 
 # Fields whose value may differ between a run and its continuation: they change neither the
 # learning problem nor the shapes of what the checkpoint holds.

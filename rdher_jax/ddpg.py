@@ -22,6 +22,7 @@ quiet_imports()  # brax imports mujoco.mjx
 
 from brax.training.acme import running_statistics  # noqa: E402
 
+from rdher_jax.config import TARGET_CLIPS  # noqa: E402  (the critic target's clip ranges)
 from rdher_jax.networks import Actor, Critic  # noqa: E402
 
 Params = Any
@@ -112,10 +113,6 @@ class DDPG(NamedTuple):
     actor_loss: Callable[[Params, DDPGState, Batch, DDPGParams], jax.Array]
     update: Callable[..., tuple[DDPGState, dict[str, jax.Array]]]
     target_update: Callable[..., DDPGState]
-
-
-# The critic target's clip range: per row's weight, or baselines' unweighted clip_return.
-TARGET_CLIPS: tuple[str, ...] = ("weighted", "unweighted")
 
 
 def critic_target(
