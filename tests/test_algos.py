@@ -19,9 +19,10 @@ TINY = dict(env="FetchReach", n_cycles=3, n_batches=4, batch_size=32, buffer_siz
 
 
 # archer and dher are her and rdher with other reward weights (the same programs but for a
-# traced weight): slow, to keep the default suite's compilations down.
+# traced weight); ddpg trains in tests/test_experiments.py's fixture and cher in
+# tests/test_cher_trainer.py: slow here, to keep the default suite's compilations down.
 @pytest.mark.parametrize("algo", [
-    pytest.param(a, marks=pytest.mark.slow) if a in ("archer", "dher") else a
+    pytest.param(a, marks=pytest.mark.slow) if a in ("archer", "dher", "ddpg", "cher") else a
     for a in ALGO_NAMES])
 def test_every_algo_trains_a_few_cycles(tmp_path, algo):
     cfg = resolve(Config(**{**TINY, "algo": algo, "run_dir": str(tmp_path / algo)}))
@@ -67,8 +68,10 @@ def test_fetch_reach_rdher_learns(tmp_path):
     assert np.isfinite([float(r["critic_loss"]) for r in rows]).all()
 
 
-@pytest.mark.parametrize("algo,terminal", [("her", "success"), ("rdher", "success"),
-                                           ("her", "exact")])
+# ("her", "success") is ("rdher", "success")'s learner without the combined rows: slow.
+@pytest.mark.parametrize("algo,terminal", [
+    pytest.param("her", "success", marks=pytest.mark.slow), ("rdher", "success"),
+    ("her", "exact")])
 def test_fast_preset_learner_options_train(tmp_path, algo, terminal):
     """The optional learner changes (all at once: n-step, TD3 smoothing and delay, targets
     inside the cycle, LayerNorm, terminal on success) compile and train with HER and RDHER."""

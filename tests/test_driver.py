@@ -23,6 +23,7 @@ def read_rows(path):
         return [{k: v for k, v in r.items() if k != "wall_time"} for r in csv.DictReader(f)]
 
 
+@pytest.mark.slow  # the default suite's sweep-equals-separate-runs check: tests/test_sweep.py
 def test_grid_sweep_runs_each_value_as_a_separate_run_would(tmp_path):
     d = tmp_path / "sweep"
     plan = sweep_mod.parse_sweep_args([*TINY_ARGS, "grid.dher_fraction=[0.8,0.2]",

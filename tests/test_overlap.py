@@ -86,6 +86,7 @@ def test_overlap_run_resumes_to_the_same_rows(tmp_path):
     assert len(rows(a)) == 3 and rows(a) == rows(b)
 
 
+@pytest.mark.slow
 def test_overlap_cli_sets_up_its_second_device(tmp_path):
     """The CLI asks JAX for the second host device itself (no environment variable), also when
     it resumes an overlap run, and records overlap in config.yaml."""
@@ -112,7 +113,7 @@ def test_overlap_needs_two_host_devices():
     assert parse_args([]).overlap is False
 
 
-@pytest.mark.parametrize("vmapped", [False, True])
+@pytest.mark.parametrize("vmapped", [pytest.param(False, marks=pytest.mark.slow), True])
 def test_split_init_is_init_overlap(vmapped):
     """The driver starts an overlapped run as two programs (the state, cacheable, then the first
     episodes by the cycles' own collect program); that is ``program.init`` (init_overlap) in

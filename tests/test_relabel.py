@@ -140,8 +140,7 @@ def test_dher_combined_rows_are_algorithm_1(seed, n_adds):
         buf = add(buf, random_episodes(rng, n_new, T, 2))
         state = update(state, buf, PARAMS)
     bits = f.draw_combined(jax.random.PRNGKey(seed % 1000), batch)
-    tr, ok = gather(bits, state, buf, PARAMS)
-    ok = np.asarray(ok)
+    tr, ok = jax.tree.map(np.asarray, gather(bits, state, buf, PARAMS))  # numpy: indexed per row
     matches = brute_matches(buf)
     obs, ag, g, act = (np.asarray(x) for x in (buf.obs, buf.ag, buf.g, buf.action))
     i, s, j = (np.asarray(x) for x in (tr.ep, tr.t, tr.goal_ep))

@@ -195,6 +195,7 @@ def test_run_outputs_and_evaluate(tmp_path):
     assert 0.0 <= r["success"] <= 1.0 and r["episodes"] == 4 and r["backend"] == "mujoco"
 
 
+@pytest.mark.slow  # the default suite's learning check is test_algos' RDHER on the same task
 def test_fetch_reach_her_learns(tmp_path):
     """FetchReach with HER reaches >= 0.9 test success within 5,000 env steps (5 epochs of
     10 cycles x 2 episodes x 50 steps) for this seed; the whole run is deterministic."""
@@ -322,6 +323,7 @@ def _one_line_error_or_noise(p: subprocess.Popen) -> str:
     return lines[0]
 
 
+@pytest.mark.slow
 def test_target_every_moves_targets_inside_the_cycle(tmp_path):
     """target_every=k updates the targets after every k-th gradient step (counted over the
     run), instead of once after the cycle; polyak=0 makes 'updated' mean 'equal to online'."""

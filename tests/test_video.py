@@ -57,6 +57,7 @@ def run(tmp_path_factory) -> Path:
     return run_dir
 
 
+@pytest.mark.slow
 def test_gif_has_one_frame_per_state(run, tmp_path):
     """MUJOCO_GL unset: the first working backend is chosen; K episodes give K x (T + 1)
     frames (reset state plus every step), each showing the scene."""
