@@ -113,7 +113,9 @@ def test_overlap_needs_two_host_devices():
     assert parse_args([]).overlap is False
 
 
-@pytest.mark.parametrize("vmapped", [pytest.param(False, marks=pytest.mark.slow), True])
+# The overlapped cycle itself is checked by test_overlapped_cycles_store_the_sequential_episodes.
+@pytest.mark.slow
+@pytest.mark.parametrize("vmapped", [False, True])
 def test_split_init_is_init_overlap(vmapped):
     """The driver starts an overlapped run as two programs (the state, cacheable, then the first
     episodes by the cycles' own collect program); that is ``program.init`` (init_overlap) in
