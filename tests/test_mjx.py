@@ -25,12 +25,8 @@ GRIP_TOL = 0.025
 OBJ_TOL = 0.025
 
 
-@pytest.mark.parametrize("task", [
-    pytest.param("FetchPush", marks=pytest.mark.slow),
-    pytest.param("FetchReach", marks=pytest.mark.slow),
-    pytest.param("FetchSlide", marks=pytest.mark.slow),
-    pytest.param("FetchPickAndPlace", marks=pytest.mark.slow),
-])
+@pytest.mark.slow
+@pytest.mark.parametrize("task", ["FetchPush", "FetchReach", "FetchSlide", "FetchPickAndPlace"])
 def test_mjx_matches_native_on_the_edited_scene(task):
     n, T = 2, 50
     mjx_env = make_env(task, "mjx", auto_reset=False)

@@ -143,8 +143,7 @@ def test_dher_combined_rows_are_algorithm_1(seed, n_adds):
     tr, ok = jax.tree.map(np.asarray, gather(bits, state, buf, PARAMS))  # numpy: indexed per row
     matches = brute_matches(buf)
     obs, ag, g, act = (np.asarray(x) for x in (buf.obs, buf.ag, buf.g, buf.action))
-    i, s, j = (np.asarray(x) for x in (tr.ep, tr.t, tr.goal_ep))
-    shift = np.asarray(tr.goal_shift)
+    i, s, j, shift = tr.ep, tr.t, tr.goal_ep, tr.goal_shift
     seen = set()
     for r in np.flatnonzero(ok):
         # Recover (p, q, m, t) from the row and check it against the definition.
