@@ -16,8 +16,9 @@ experiment). The profile's name, doc and the task's budget are written into ever
   the most) and 1 h 36 min to 1 h 48 min (Slide and PickAndPlace, HER, DHER and RDHER) of one
   core beside another sweep (``run_info.json`` under ``experiments/results/benchmark/paper/``),
   on an Intel Xeon; a 3-seed Slide sweep 55-64 min there, 1 h 54 min on a slower AMD EPYC
-  (beside another sweep and a test-suite run): use ``--first-seed`` to split a setting that
-  does not fit in a sitting.
+  (beside another sweep and a test-suite run), where one seed alone, a piece of its own beside
+  another on the second core, is about 42 min (about 50 s per epoch): use ``--first-seed`` to
+  split a setting that does not fit in a sitting.
   The paper does not state its epoch counts; 50 is ``n_epochs``'s default in the code it builds on
   (openai/baselines ``her/experiment/train.py``, mengf1/DHER ``train_dyreach.py``) and fits
   Table 3's wall clock (HER on Push: 3 h 30 min on one CPU core, i.e. 4.2 min per 50-cycle
