@@ -6,8 +6,9 @@ section 2; the benchmark's ``--profile cpu --tasks FetchPush``). This varies wha
 suspects, one thing at a time, each setting one vmapped sweep of the profile's seeds at the
 benchmark's budget (``cpu``: FetchPush ``preset=fast``, sequential, 500,000 env steps, 3 seeds):
 
-- ``her``, ``rdher``: HER and RDHER (4, 0.5) at the authors' share, read from the benchmark's
-  sweeps of the same budget (or, where those are gone, its collected results), never run here.
+- ``her``, ``rdher``: HER, and RDHER at the task's paper pair and the authors' share, read from
+  the benchmark's sweeps of the same budget (or, where those are gone, its collected results),
+  never run here.
 - ``rdher_f0.2``, ``rdher_f0.05``: the paper's pair with a smaller cap on DHER's combined rows,
   ``dher_fraction`` (at most that times (1 − recent success) of a batch; the authors' 0.8).
 - ``rdher_plain``: the authors' plain mix, the rows that are not combined not relabelled
@@ -43,12 +44,12 @@ KIND = "beyond"
 # from): profiles.NamedSetting. A share replaces the budget's dher_fraction=0.8.
 SETTINGS: dict[str, NamedSetting] = {
     "her": ("HER", "her", None, (), "benchmark"),
-    "rdher": ("RDHER (4, 0.5), share 0.8 (the authors')", "rdher", None, (), "benchmark"),
-    "rdher_plain": ("RDHER (4, 0.5), share 0.8, plain mix (replay_k=0)", "rdher", None,
+    "rdher": ("RDHER {pair}, share 0.8 (the authors')", "rdher", None, (), "benchmark"),
+    "rdher_plain": ("RDHER {pair}, share 0.8, plain mix (replay_k=0)", "rdher", None,
                     ("replay_k=0",), None),
-    "rdher_f0.2": ("RDHER (4, 0.5), share 0.2", "rdher", None,
+    "rdher_f0.2": ("RDHER {pair}, share 0.2", "rdher", None,
                    ("dher_fraction=0.2",), None),
-    "rdher_f0.05": ("RDHER (4, 0.5), share 0.05", "rdher", None,
+    "rdher_f0.05": ("RDHER {pair}, share 0.05", "rdher", None,
                     ("dher_fraction=0.05",), None),
     "rdher_f0.2_lr2_lh1": ("RDHER (2, 1), share 0.2", "rdher", ((2.0, 1.0),),
                            ("dher_fraction=0.2",), None),

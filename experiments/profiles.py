@@ -273,8 +273,9 @@ def make_jobs(kind: str, profile: str, tasks: Sequence[str], runs_dir: Path,
 
 
 # A named setting of a one-sweep-per-setting experiment (moving_goals.py, beyond.py): its
-# label, algorithm, λ pairs (None: the task's paper pair), the sweep's own key=value tokens,
-# and the experiment whose sweep of the algorithm's name it is read from (None: run here).
+# label ("{pair}" in it stands for the task's paper pair, e.g. "(4, 0.5)"), algorithm, λ pairs
+# (None: the task's paper pair), the sweep's own key=value tokens, and the experiment whose
+# sweep of the algorithm's name it is read from (None: run here).
 NamedSetting = tuple[str, str, tuple[tuple[float, float], ...] | None, tuple[str, ...],
                      str | None]
 
@@ -288,6 +289,8 @@ def named_sweeps(table: Mapping[str, NamedSetting],
         out = []
         for name in dict.fromkeys(names):
             label, algo, lambdas, extra, borrow = table[name]
+            lr, lh = TASK_TABLE[task].paper_lambdas
+            label = label.replace("{pair}", f"({num(lr)}, {num(lh)})")
             setting = Setting(name, label, algo, lambdas[0] if lambdas else None,
                               list(table).index(name))
             out.append((algo if borrow else name, algo, lambdas, (setting,), extra, borrow))

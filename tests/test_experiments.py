@@ -451,3 +451,13 @@ def test_statistics():
     assert report.vs_cell(diff / 100, p) == "-3.5 (p 0.01)"
     assert math.isnan(report.welch([1, 1], [2, 2])[1]) and math.isnan(report.welch([1], [2, 3])[1])
     assert report.vs_cell(math.nan, math.nan) == "-"
+
+
+def test_beyond_labels_name_each_tasks_own_paper_pair():
+    """A setting at the paper's pair is labelled with the task's pair, which differs by task."""
+    sweeps = profiles.named_sweeps(beyond.SETTINGS, ["rdher", "rdher_f0.2", "dher_f0.2"])
+    for task, pair in (("FetchSlide", "(4, 0.5)"), ("FetchPickAndPlace", "(2, 1)")):
+        labels = [s.label for *_, settings, _extra, _borrow in sweeps(task) for s in settings]
+        assert labels[:2] == [f"RDHER {pair}, share 0.8 (the authors')",
+                              f"RDHER {pair}, share 0.2"], labels
+        assert labels[2] == "DHER, share 0.2"
