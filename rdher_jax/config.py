@@ -42,6 +42,10 @@ PHYSICS_CALLS: tuple[str, ...] = ("ffi", "callback")
 # The critic target's clip range (ddpg.critic_target): each row's weighted range, or
 # baselines' unweighted clip_return for every row.
 TARGET_CLIPS: tuple[str, ...] = ("weighted", "unweighted")
+REPLAY_PRIORITIES: tuple[str, ...] = ("none", "energy")
+# The algorithms whose rows are drawn episode-first by 'future' relabelling (the strategy
+# energy-based prioritisation reweights).
+HER_FAMILY: tuple[str, ...] = ("ddpg", "her", "archer")
 
 # Fields whose value may differ between a run and its continuation: they change neither the
 # learning problem nor the shapes of what the checkpoint holds.
@@ -205,6 +209,16 @@ class Config:
         "Algorithm 1 does); the same for unweighted algorithms"
     )
     replay_k: int = _f(4, "HER ratio: goals are relabelled with probability 1 - 1/(1 + k)")
+    replay_priority: str = _f(
+        "none", "how ddpg/her/archer draw a row's episode: none (uniformly, baselines) or energy "
+        "(in proportion to the work it did on the object, Zhao & Tresp 2018: episodes that "
+        "never move it are not replayed once any other has). Changes the algorithm: "
+        "docs/algorithms.md, 'Energy-based prioritisation'"
+    )
+    energy_clip: float = _f(
+        0.5, "replay_priority=energy: upper clip of each transition's energy (the EBP authors' "
+        "clip_energy, 0.5 on the Fetch tasks)"
+    )
     lambda_r: float | None = _f(
         None, "reward weight on real transitions (>= 0); null: the paper's per-task value for "
         "rdher and archer (Reach, PickAndPlace 2; Push, Slide 4), else 1"
@@ -343,6 +357,12 @@ def validate(cfg: Config) -> Config:
     _one_of("compute_dtype", cfg.compute_dtype, COMPUTE_DTYPES)
     _one_of("target_clip", cfg.target_clip, TARGET_CLIPS)
     _one_of("physics_call", cfg.physics_call, PHYSICS_CALLS)
+    _one_of("replay_priority", cfg.replay_priority, REPLAY_PRIORITIES)
+    _check(cfg.replay_priority == "none" or cfg.algo in HER_FAMILY,
+           f"replay_priority={cfg.replay_priority} applies to {', '.join(HER_FAMILY)}, not "
+           f"{cfg.algo}")
+    _check(math.isfinite(cfg.energy_clip) and cfg.energy_clip > 0,
+           f"energy_clip must be a finite number > 0, got {cfg.energy_clip}")
     _check(cfg.terminal != "exact" or cfg.n_step == 1, "terminal=exact needs n_step=1")
     if cfg.preset is not None:
         _one_of("preset", cfg.preset, tuple(PRESETS))

@@ -3,7 +3,8 @@
 - ``base``: the ``Transition`` batch and its source ids, the ``Relabeller`` interface
   (init / update / sample) and ``RelabelParams``, the traced hyperparameters.
 - ``her``, ``cher``, ``dher``: the strategies ('future', CHER's curriculum, DHER's matching),
-  each with its ``make_*`` returning a ``Relabeller``.
+  each with its ``make_*`` returning a ``Relabeller``; ``energy``: 'future' relabelling with
+  energy-prioritised episodes (``replay_priority=energy``).
 - ``targets``: n-step returns and terminal rules over a sampled batch, and the observed return
   of the hindsight-bias diagnostic.
 
@@ -26,6 +27,7 @@ from rdher_jax.relabel.base import (
 )
 from rdher_jax.relabel.cher import make_cher
 from rdher_jax.relabel.dher import make_dher
+from rdher_jax.relabel.energy import make_her_energy, trajectory_energy
 from rdher_jax.relabel.her import make_her, sample_episodes, sample_her
 from rdher_jax.relabel.targets import mark_terminal, n_step_returns, observed_return, row_goals
 
@@ -50,6 +52,9 @@ def make_relabeller(cfg, compute_reward: RewardFn, capacity_episodes: int, T: in
         A :class:`Relabeller`.
     """
     kind = STRATEGIES[cfg.algo]
+    if kind == "her" and cfg.replay_priority == "energy":
+        return make_her_energy(compute_reward, cfg.batch_size, capacity_episodes,
+                               num_new=cfg.num_envs, clip=cfg.energy_clip)
     if kind == "her":
         return make_her(compute_reward, cfg.batch_size)
     if kind == "dher":
@@ -61,6 +66,7 @@ def make_relabeller(cfg, compute_reward: RewardFn, capacity_episodes: int, T: in
 
 
 __all__ = ["DHER", "HER", "REAL", "SOURCE_NAMES", "STRATEGIES", "RelabelParams", "Relabeller",
-           "RewardFn", "Transition", "make_cher", "make_dher", "make_her", "make_relabeller",
-           "mark_terminal", "n_step_returns", "observed_return", "params_from_config",
-           "relabel_prob_from_k", "row_goals", "sample_episodes", "sample_her"]
+           "RewardFn", "Transition", "make_cher", "make_dher", "make_her", "make_her_energy",
+           "make_relabeller", "mark_terminal", "n_step_returns", "observed_return",
+           "params_from_config", "relabel_prob_from_k", "row_goals", "sample_episodes",
+           "sample_her", "trajectory_energy"]
