@@ -34,7 +34,7 @@ from flax import struct
 
 from rdher_jax.buffer import BufferState
 from rdher_jax.relabel.base import Relabeller, RewardFn
-from rdher_jax.relabel.her import future_step, gather_her
+from rdher_jax.relabel.her import draw_her, gather_her
 
 # The authors' constants (Fetch tasks): gravity, object mass and env step in seconds.
 GRAVITY, MASS, DT = 9.81, 1.0, 0.04
@@ -120,13 +120,12 @@ def make_her_energy(compute_reward: RewardFn, batch_size: int, capacity_episodes
 
     def sample(key, state: EnergyState, buffer: BufferState, params, step):
         del step
-        T = buffer.horizon
-        bits = jax.random.bits(key, (4, batch_size), jnp.uint32)
-        ep_idx = draw_episodes(bits[0], state.cumulative, buffer.num_episodes)
-        t = (bits[1] % jnp.uint32(T)).astype(jnp.int32)
-        u = (bits[2:] >> 8).astype(jnp.float32) * jnp.float32(2.0**-24)
-        future_t = future_step(t, u[0], T)
-        mask = u[1] < params.relabel_prob
+        k_her, k_ep = jax.random.split(key)
+        # HER's draws of step, future step and mask; only the episode is drawn anew.
+        _, t, future_t, mask = draw_her(k_her, buffer.num_episodes, buffer.horizon, batch_size,
+                                        params.relabel_prob)
+        bits = jax.random.bits(k_ep, (batch_size,), jnp.uint32)
+        ep_idx = draw_episodes(bits, state.cumulative, buffer.num_episodes)
         return gather_her(buffer, ep_idx, t, future_t, mask, compute_reward)
 
     return Relabeller("her_energy", init=init, update=update, sample=sample)
