@@ -280,10 +280,13 @@ def _resume_plan(path: Path, fields: Mapping[str, str], other: Mapping[str, str]
         raise ConfigError(f"cannot resume: {path / SPEC_FILE} is not a sweep spec "
                           f"({type(e).__name__}: {e})") from None
     base_saved = from_yaml(path / BASE_CONFIG_FILE)
-    if "lambdas" in other and parse_lambdas(other["lambdas"]) != lambdas:
-        raise ConfigError(f"cannot change lambdas when resuming {path}")
-    if "seeds" in other and parse_seeds(other["seeds"], base_saved.seed) != seeds:
-        raise ConfigError(f"cannot change seeds when resuming {path}")
+    if "lambdas" in other and (asked := parse_lambdas(other["lambdas"])) != lambdas:
+        raise ConfigError(f"cannot change lambdas when resuming {path}: it holds "
+                          f"{list(lambdas)}, asked for {list(asked)}")
+    if "seeds" in other and (asked := parse_seeds(other["seeds"], base_saved.seed)) != seeds:
+        raise ConfigError(f"cannot change seeds when resuming {path}: it holds seeds "
+                          f"{list(seeds)}, asked for {list(asked)} (move it away to start "
+                          "these seeds afresh)")
     grid = parse_grid(other, base_saved)
     if grid and grid != saved_grid:
         raise ConfigError(f"cannot change the grid when resuming {path}")

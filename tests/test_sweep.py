@@ -255,7 +255,7 @@ def test_bad_sweep_dirs(ref, tmp_path, capsys):
     cases = [([f"sweep_dir={tmp_path / 'file'}"], "not a directory"),
              ([f"sweep_dir={d}"], "not empty; pass resume="),
              ([f"resume={d / RUNS[0]}"], "has no sweep.yaml"),
-             ([f"resume={d}", "seeds=3"], "cannot change seeds"),
+             ([f"resume={d}", "seeds=3"], "holds seeds [0, 1], asked for [0, 1, 2]"),
              ([f"resume={d}", "hidden=64"], "cannot change hidden")]
     for args, fragment in cases:
         with pytest.raises(SystemExit) as e:
