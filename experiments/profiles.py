@@ -421,14 +421,23 @@ def collect(job: Job, out_root: Path, command: str, log=print,
         log(f"[{job.task} {job.name}] nothing to collect yet in {job.sweep_dir}")
         return []
     d, _, info = loaded[0]
-    # Each seed from the first directory that has it (the whole sweep before its pieces).
-    rows, seen = [], set()
+    # Each seed from the directory where it has run the most epochs, the first of them on a tie
+    # (the whole sweep before its pieces): a seed started again as a piece of its own, beside an
+    # abandoned whole sweep that holds it too, is read from the piece.
+    best: dict[tuple, dict[str, Any]] = {}
     for p, runs_p, _ in loaded:
         for r in runs_p:
             key = (r["lambda_r"], r["lambda_h"], r["seed"])
-            if key not in seen:
-                seen.add(key)
-                rows.append({**r, "_dir": p})
+            if key in best:
+                old = best[key]
+                use = r if int(r.get("epochs", 0)) > int(old.get("epochs", 0)) else old
+                log(f"[{job.task} {job.name}] seed {r['seed']} is in {_rel(old['_dir'])} "
+                    f"({old.get('epochs', 0)} epochs) and {_rel(p)} ({r.get('epochs', 0)}): "
+                    f"reading {_rel(use['_dir'] if use is old else p)}")
+                if use is old:
+                    continue
+            best[key] = {**r, "_dir": p}
+    rows = list(best.values())
     written = []
     for s in job.outputs:
         mine = [r for r in rows
@@ -573,6 +582,10 @@ def add_common_args(ap: Any) -> None:
     ap.add_argument("--dry-run", action="store_true",
                     help="validate and print each sweep's command and whether it would start, "
                     "resume or be skipped; train and write nothing")
+    ap.add_argument("--status", action="store_true",
+                    help="train and write nothing: print, per setting, each seed's epochs so "
+                    "far and the sweep directory (whole sweep or piece) that holds them, or "
+                    "that it is missing")
     ap.add_argument("--collect-only", action="store_true",
                     help="train nothing: copy what the sweep directories hold now (e.g. while "
                     "the sweeps run in another process) and write the report")
@@ -588,6 +601,56 @@ def add_common_args(ap: Any) -> None:
                     "several machines')")
     ap.add_argument("--num-processes", type=int, default=None, help="multi-process: N")
     ap.add_argument("--process-id", type=int, default=None, help="multi-process: this one's index")
+
+
+_RUN_NAME = re.compile(r"lr(?P<lr>[^_]+)_lh(?P<lh>[^_]+)_s(?P<seed>\d+)")
+
+
+def _ago(seconds: float) -> str:
+    if seconds < 120:
+        return f"{seconds:.0f} s ago"
+    return f"{seconds / 60:.0f} min ago" if seconds < 7200 else f"{seconds / 3600:.1f} h ago"
+
+
+def status_lines(job: Job, now: float | None = None) -> list[str]:
+    """Where each seed of ``job``'s setting stands: its epochs so far (the last row of its
+    metrics.csv) and the sweep directory holding it, over the whole sweep and every piece;
+    a seed held by several directories is listed with each, the one collecting reads first."""
+    import time
+
+    now = time.time() if now is None else now
+    found: dict[tuple[str, str], dict[int, list[tuple[int, Path, float]]]] = {}
+    for d in job.piece_dirs():
+        for run in sorted(p for p in d.iterdir() if p.is_dir()):
+            m = _RUN_NAME.fullmatch(run.name)
+            f = run / "metrics.csv"
+            if m is None or not f.is_file():
+                continue
+            last = _last_row(f.read_text(encoding="utf-8"))
+            epochs = int(last["epoch"]) if last else 0
+            found.setdefault((m["lr"], m["lh"]), {}).setdefault(int(m["seed"]), []).append(
+                (epochs, d, f.stat().st_mtime))
+    head = (f"[{job.task} {job.name}] {job.seeds} seeds x {job.epochs} epochs"
+            + (f", read from the {job.sweep_kind} experiment's sweep" if job.borrowed else ""))
+    if not found:
+        return [head, f"  no run in {_rel(job.sweep_dir)}"
+                + ("; collecting copies that experiment's results, if any" if job.borrowed
+                   else "")]
+    out = [head]
+    for (lr, lh), seeds in sorted(found.items()):
+        if len(found) > 1 or job.lambdas is not None:
+            out.append(f"  λ_r {lr}, λ_h {lh}:")
+        for seed in sorted(set(range(job.seeds)) | set(seeds)):
+            held = sorted(seeds.get(seed, []), key=lambda h: -h[0])  # most epochs first
+            if not held:
+                out.append(f"  {'s' + str(seed) + ':':<5} missing")
+                continue
+            for i, (epochs, d, mtime) in enumerate(held):
+                state = "done" if epochs >= job.epochs else f"{epochs}/{job.epochs} epochs"
+                label = f"s{seed}:" if i == 0 else ""
+                out.append(f"  {label:<5} {state:<15} {_rel(d)} "
+                           f"(updated {_ago(max(now - mtime, 0.0))})")
+    return out
 
 
 def run_experiment(kind: str, script: str, args: Any, argv: Sequence[str],
@@ -608,6 +671,12 @@ def run_experiment(kind: str, script: str, args: Any, argv: Sequence[str],
                 raise ConfigError(f"--{name} must be >= 1, got {v}")
         if args.eval_episodes < 0:
             raise ConfigError(f"--eval-episodes must be >= 0, got {args.eval_episodes}")
+        if args.status:
+            tasks = list(dict.fromkeys(args.tasks or PROFILES[args.profile].default_tasks))
+            for job in make_jobs(kind, args.profile, tasks, args.runs_dir, args.seeds,
+                                 args.epochs, sweeps, 0):
+                print("\n".join(status_lines(job)))
+            return 0
         keys = {"coordinator": args.coordinator, "num_processes": args.num_processes,
                 "process_id": args.process_id}
         # Every sweep of the experiment runs over all the processes; process 0 collects and

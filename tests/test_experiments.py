@@ -206,6 +206,45 @@ def test_a_setting_run_in_pieces_is_collected_as_one(results, tmp_path, capsys):
     assert "--first-seed 2 leaves no seed" in capsys.readouterr().err
 
 
+def test_a_seed_rerun_as_a_piece_is_read_from_the_piece_and_status_shows_both(results, tmp_path,
+                                                                             capsys):
+    """A seed held both by an abandoned whole sweep (fewer epochs) and by a piece that ran it
+    again is collected from the piece; --status lists every seed with the directories that
+    hold it, most epochs first, and the seeds no directory holds."""
+    runs, out = tmp_path / "runs", tmp_path / "out"
+    shutil.copytree(results["runs"] / "benchmark", runs / "benchmark")  # HER's seeds 0-1
+    whole = runs / "benchmark/tiny/FetchReach/her"
+    # Seed 1 of the whole sweep stopped after its first epoch.
+    summary = json.loads((whole / "summary.json").read_text())
+    for r in summary["runs"]:
+        if r["seed"] == 1:
+            r["epochs"] = 1
+    (whole / "summary.json").write_text(json.dumps(summary))
+    stale = whole / "lr1_lh1_s1/metrics.csv"
+    stale.write_text("".join(stale.read_text().splitlines(keepends=True)[:2]))
+    args = ["--profile", "tiny", "--out", str(out), "--runs-dir", str(runs), "--no-progress",
+            "--eval-episodes", "0", "--algos", "her"]
+    assert benchmark.main([*args, "--seeds", "3", "--first-seed", "1"]) == 0
+    log = capsys.readouterr().out
+    assert "seed 1 is in" in log and "reading" in log and log.rstrip().count("her.s1-2") >= 1
+    d = out / "benchmark/tiny/FetchReach/her"
+    assert [r["epoch"] for r in read_csv(d / "s1.csv")] == ["1", "2"]
+    assert (d / "s1.csv").read_text() == (runs / "benchmark/tiny/FetchReach/her.s1-2/"
+                                          "lr1_lh1_s1/metrics.csv").read_text()
+    assert (d / "s0.csv").read_text() == (whole / "lr1_lh1_s0/metrics.csv").read_text()
+    before = {p.name: p.read_bytes() for p in d.iterdir()}
+    assert benchmark.main([*args, "--seeds", "4", "--status"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == "[FetchReach her] 4 seeds x 2 epochs"
+    body = [ln.split("(updated")[0].split() for ln in lines[1:]]
+    assert body[0][:2] == ["s0:", "done"] and body[0][2].endswith("FetchReach/her")
+    assert body[1][:2] == ["s1:", "done"] and body[1][2].endswith("her.s1-2")
+    assert body[2][:3] == ["1/2", "epochs", body[2][2]] and body[2][2].endswith("FetchReach/her")
+    assert body[3][:2] == ["s2:", "done"] and body[3][2].endswith("her.s1-2")
+    assert body[4] == ["s3:", "missing"] and len(body) == 5
+    assert {p.name: p.read_bytes() for p in d.iterdir()} == before  # --status writes nothing
+
+
 def test_rerun_skips_finished_sweeps(results, capsys):
     csv_path = results["out"] / "ablation/tiny/FetchReach/her/s0.csv"
     before = csv_path.read_bytes()
