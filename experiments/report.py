@@ -2,6 +2,7 @@
 
     python experiments/report.py                       # every kind and profile present
     python experiments/report.py --results DIR
+    python experiments/report.py --compare DIR_A DIR_B ...   # Welch tests between settings
 
 Reads ``<results>/<ablation|benchmark>/<profile>/<task>/<setting>/s<seed>.csv`` and the
 ``run_info.json`` beside them (both written by ``experiments/ablation.py`` and
@@ -26,6 +27,7 @@ from __future__ import annotations
 import argparse
 import csv
 import io
+import itertools
 import json
 import math
 import statistics
@@ -640,6 +642,47 @@ def figure(kind: str, profile: str, data: Sequence[SettingData], x_col: str, pat
 
 # ------------------------------------------------------------------ driver
 
+MEASURES = (("best", "best 10-episode epoch"), ("policy", "best policy retested"),
+            ("final", "final"), ("mean", "over all epochs"))
+
+
+def load_setting(path: Path) -> SettingData:
+    """One setting's directory, ``<kind>/<profile>/<task>/<setting>``, as :func:`load` reads it.
+
+    Raises:
+        ValueError: ``path`` holds no ``run_info.json`` or no per-run CSVs with test success.
+    """
+    path = Path(path)
+    if not (path / "run_info.json").is_file():
+        raise ValueError(f"{path} is not a setting's results directory (no run_info.json)")
+    found = next((s for s in load(path.parent.parent)
+                  if s.task == path.parent.name and s.name == path.name), None)
+    if found is None or not found.runs:
+        raise ValueError(f"{path} holds no per-run CSVs with test success (s<seed>.csv)")
+    return found
+
+
+def compare_markdown(paths: Sequence[Path]) -> str:
+    """Every setting of ``paths`` against every other: per measure the difference of the means
+    over seeds and the two-sided p of Welch's test, as RESULTS.md quotes them between settings
+    that are not HER (which the summaries' 'vs HER' columns cover). In %."""
+    sets = [load_setting(p) for p in paths]
+    labels = ["/".join(Path(p).resolve().parts[-4:]) for p in paths]  # kind/profile/task/setting
+    seeds = [per_seed(s) for s in sets]
+    out = ["| setting | seeds | " + " | ".join(f"{h}: mean ± std" for _, h in MEASURES) + " |",
+           "|---|---|" + "---|" * len(MEASURES)]
+    for label, s, ps in zip(labels, sets, seeds, strict=True):
+        cells = [pm(stat(list(ps[k].values()))) if ps[k] else "-" for k, _ in MEASURES]
+        out.append(f"| {label} | {len(s.runs)} | " + " | ".join(cells) + " |")
+    out += ["", "| A − B | " + " | ".join(h for _, h in MEASURES) + " |",
+            "|---|" + "---|" * len(MEASURES)]
+    for i, j in itertools.combinations(range(len(sets)), 2):
+        cells = [vs_cell(*welch(list(seeds[i][k].values()), list(seeds[j][k].values())))
+                 for k, _ in MEASURES]
+        out.append(f"| {labels[i]} − {labels[j]} | " + " | ".join(cells) + " |")
+    return "\n".join(out) + "\n"
+
+
 def write_reports(results: Path, only: set[tuple[str, str]] | None = None) -> list[Path]:
     """Write the tables and figures of every ``<kind>/<profile>`` under ``results`` (or only
     those in ``only``); returns the files written."""
@@ -672,7 +715,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--results", type=Path, default=HERE / "results",
                     help="results root holding ablation/ and benchmark/ (default: "
                     "experiments/results)")
+    ap.add_argument("--compare", type=Path, nargs="+", metavar="SETTING_DIR",
+                    help="print, and write nothing: each setting's measures over seeds and "
+                    "every pair's difference with Welch's p, for settings' results directories "
+                    "(<kind>/<profile>/<task>/<setting>, from any kind or profile)")
     args = ap.parse_args(argv)
+    if args.compare is not None:
+        if len(args.compare) < 2:
+            print("error: --compare needs at least two setting directories", file=sys.stderr)
+            return 2
+        try:
+            print(compare_markdown(args.compare), end="")
+        except ValueError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+        return 0
     written = write_reports(args.results)
     if not written:
         print(f"no ablation or benchmark results under {args.results}", file=sys.stderr)

@@ -500,3 +500,43 @@ def test_beyond_labels_name_each_tasks_own_paper_pair():
         assert labels[:2] == [f"RDHER {pair}, share 0.8 (the authors')",
                               f"RDHER {pair}, share 0.2"], labels
         assert labels[2] == "DHER, share 0.2"
+
+
+def _setting_dir(root, name, finals, best_policy=None):
+    """A setting's results directory with one CSV per seed: test success 0 for two epochs, then
+    ``final`` for three (so best = final = the mean of the last 3, and the mean over all epochs
+    is 3/5 of it)."""
+    d = root / "benchmark/paper/FetchPush" / name
+    d.mkdir(parents=True)
+    runs = {}
+    for seed, final in enumerate(finals):
+        rows = ["epoch,test_success", "1,0", "2,0"] + [f"{e},{final}" for e in (3, 4, 5)]
+        (d / f"s{seed}.csv").write_text("\n".join(rows) + "\n")
+        if best_policy is not None:
+            runs[f"s{seed}"] = {"best_policy": {"success": best_policy[seed], "episodes": 100}}
+    (d / "run_info.json").write_text(json.dumps({"runs": runs}))
+    return d
+
+
+def test_compare_is_welch_between_any_two_settings(tmp_path, capsys, one_line_error):
+    from scipy import stats as sps
+
+    a = _setting_dir(tmp_path, "a", [0.9, 0.8, 1.0], best_policy=[0.85, 0.8, 0.95])
+    b = _setting_dir(tmp_path, "b", [0.5, 0.7, 0.4, 0.6])
+    assert report.main(["--compare", str(a), str(b)]) == 0
+    out = capsys.readouterr().out
+    assert "| benchmark/paper/FetchPush/a | 3 | 90.0 ± 10.0 | 86.7 ± 7.6 | 90.0 ± 10.0 | " \
+        "54.0 ± 6.0 |" in out
+    assert "| benchmark/paper/FetchPush/b | 4 | 55.0 ± 12.9 | - |" in out
+    p_final = sps.ttest_ind([0.9, 0.8, 1.0], [0.5, 0.7, 0.4, 0.6], equal_var=False).pvalue
+    p_mean = sps.ttest_ind([0.54, 0.48, 0.6], [0.3, 0.42, 0.24, 0.36], equal_var=False).pvalue
+    row = next(ln for ln in out.splitlines() if ln.startswith("| benchmark/paper/FetchPush/a −"))
+    assert row == (f"| benchmark/paper/FetchPush/a − benchmark/paper/FetchPush/b | "
+                   f"+35.0 (p {p_final:.2g}) | - | +35.0 (p {p_final:.2g}) | "
+                   f"+21.0 (p {p_mean:.2g}) |")
+    # Not a setting's directory, or only one: a one-line error and exit 2.
+    for args, why in (([a, tmp_path], "no run_info.json"), ([a], "at least two")):
+        p = subprocess.Popen([sys.executable, str(EXP / "report.py"), "--compare",
+                              *map(str, args)], stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True)
+        assert why in one_line_error(p)
