@@ -19,8 +19,8 @@ experiment). The profile's name, doc and the task's budget are written into ever
   (beside another sweep and a test-suite run), where one seed alone, a piece of its own beside
   another on the second core, is about 42 min (about 50 s per epoch): use ``--first-seed`` to
   split a setting that does not fit in a sitting. FetchPush HER as five one-seed pieces on the
-  AMD EPYC: 22 min 13 s per run; its RDHER as one 5-seed sweep there: about 3 min per epoch,
-  30 min per run (vmapping saves nothing with this learner on a CPU).
+  AMD EPYC: 22 min 13 s per run; its RDHER as one 5-seed sweep there: 28 min 16 s per run
+  (vmapping saves nothing with this learner on a CPU).
   The paper does not state its epoch counts; 50 is ``n_epochs``'s default in the code it builds on
   (openai/baselines ``her/experiment/train.py``, mengf1/DHER ``train_dyreach.py``) and fits
   Table 3's wall clock (HER on Push: 3 h 30 min on one CPU core, i.e. 4.2 min per 50-cycle

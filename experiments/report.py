@@ -114,24 +114,27 @@ def _task_key(task: str) -> tuple[int, str]:
     return (PAPER_TASKS.index(task) if task in PAPER_TASKS else len(PAPER_TASKS), task)
 
 
+def read_setting(sdir: Path) -> SettingData:
+    """One setting's directory ``<kind>/<profile>/<task>/<setting>``: its ``run_info.json`` and
+    the rows with a test success of each ``s<seed>.csv``."""
+    meta = json.loads((sdir / "run_info.json").read_text(encoding="utf-8"))
+    runs = {}
+    for f in sdir.glob("s*.csv"):
+        if not f.stem[1:].isdigit():
+            continue
+        with open(f, newline="", encoding="utf-8") as fh:
+            rows = [r for r in csv.DictReader(fh) if r.get("test_success", "") != ""]
+        if rows:
+            runs[int(f.stem[1:])] = rows
+    return SettingData(sdir.parent.name, sdir.name, meta, dict(sorted(runs.items())))
+
+
 def load(profile_dir: Path) -> list[SettingData]:
     """Every setting under ``<kind>/<profile>/``, tasks and settings in table order."""
-    out = []
-    for task_dir in sorted(p for p in profile_dir.iterdir() if p.is_dir()):
-        for sdir in sorted(p for p in task_dir.iterdir() if p.is_dir()):
-            info = sdir / "run_info.json"
-            if not info.is_file():
-                continue
-            meta = json.loads(info.read_text(encoding="utf-8"))
-            runs = {}
-            for f in sdir.glob("s*.csv"):
-                if not f.stem[1:].isdigit():
-                    continue
-                with open(f, newline="", encoding="utf-8") as fh:
-                    rows = [r for r in csv.DictReader(fh) if r.get("test_success", "") != ""]
-                if rows:
-                    runs[int(f.stem[1:])] = rows
-            out.append(SettingData(task_dir.name, sdir.name, meta, dict(sorted(runs.items()))))
+    out = [read_setting(sdir)
+           for task_dir in sorted(p for p in profile_dir.iterdir() if p.is_dir())
+           for sdir in sorted(p for p in task_dir.iterdir() if p.is_dir())
+           if (sdir / "run_info.json").is_file()]
     out.sort(key=lambda s: (_task_key(s.task), s.order))
     return out
 
@@ -647,7 +650,7 @@ MEASURES = (("best", "best 10-episode epoch"), ("policy", "best policy retested"
 
 
 def load_setting(path: Path) -> SettingData:
-    """One setting's directory, ``<kind>/<profile>/<task>/<setting>``, as :func:`load` reads it.
+    """:func:`read_setting`, with a clear error for a directory that is not a setting's.
 
     Raises:
         ValueError: ``path`` holds no ``run_info.json`` or no per-run CSVs with test success.
@@ -655,9 +658,8 @@ def load_setting(path: Path) -> SettingData:
     path = Path(path)
     if not (path / "run_info.json").is_file():
         raise ValueError(f"{path} is not a setting's results directory (no run_info.json)")
-    found = next((s for s in load(path.parent.parent)
-                  if s.task == path.parent.name and s.name == path.name), None)
-    if found is None or not found.runs:
+    found = read_setting(path)
+    if not found.runs:
         raise ValueError(f"{path} holds no per-run CSVs with test success (s<seed>.csv)")
     return found
 
@@ -672,7 +674,7 @@ def compare_markdown(paths: Sequence[Path]) -> str:
     out = ["| setting | seeds | " + " | ".join(f"{h}: mean ± std" for _, h in MEASURES) + " |",
            "|---|---|" + "---|" * len(MEASURES)]
     for label, s, ps in zip(labels, sets, seeds, strict=True):
-        cells = [pm(stat(list(ps[k].values()))) if ps[k] else "-" for k, _ in MEASURES]
+        cells = [pm(stat(list(ps[k].values()))) for k, _ in MEASURES]
         out.append(f"| {label} | {len(s.runs)} | " + " | ".join(cells) + " |")
     out += ["", "| A − B | " + " | ".join(h for _, h in MEASURES) + " |",
             "|---|" + "---|" * len(MEASURES)]
