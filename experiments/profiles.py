@@ -394,8 +394,29 @@ def best_policy_eval(run_dir: Path, seed: int, episodes: int,
     return {**key, "success": r["success"], "train_test_success": r["train_test_success"]}
 
 
+def _collected_pieces(meta: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """The sweep directories a collected setting's runs came from (its run_info.json), each
+    with the seeds it gave: a record written before pieces named their seeds gives them by its
+    directory's name (``<name>.s<first>-<last>``, or seeds 0.. for the whole sweep's)."""
+    seeds = set(meta.get("seeds") or ())
+    pieces = meta.get("pieces")
+    if pieces is None:  # one sweep directory
+        sw = meta.get("sweep") or {}
+        pieces = [{"dir": sw.get("dir"), "command": sw.get("command"), "runs": sw.get("runs"),
+                   "wall_clock_s": meta.get("wall_clock_s"), "hardware": meta.get("hardware"),
+                   "seeds": sorted(seeds)}]
+    out = []
+    for p in pieces:
+        if "seeds" not in p:
+            m = re.search(r"\.s(\d+)-(\d+)$", str(p.get("dir")))
+            span = range(int(m[1]), int(m[2]) + 1) if m else range(int(p.get("runs") or 0))
+            p = {**p, "seeds": sorted(seeds.intersection(span))}
+        out.append(dict(p))
+    return out
+
+
 def collect(job: Job, out_root: Path, command: str, log=print,
-            eval_episodes: int = EVAL_EPISODES) -> list[Path]:
+            eval_episodes: int = EVAL_EPISODES, keep_collected: bool = False) -> list[Path]:
     """Copy each run's metrics.csv and a trimmed run_info.json into
     ``<out_root>/<kind>/<profile>/<task>/<setting>/`` (``s<seed>.csv``, ``run_info.json``).
 
@@ -406,7 +427,13 @@ def collect(job: Job, out_root: Path, command: str, log=print,
 
     A setting run in pieces (``--first-seed``) is collected from all of them: each seed from
     the first directory that holds it (the whole sweep's, then the pieces'), the wall clock
-    summed over the pieces, each piece recorded under ``pieces``.
+    summed over the pieces, each piece recorded under ``pieces`` with its seeds.
+
+    ``keep_collected``: a seed (< the job's seeds) already collected into the setting's
+    directory whose sweep directory is gone (a study run in pieces on machines that do not
+    share a runs directory) is kept as it was, CSV, best-policy test and piece record; without
+    it, a collected seed no sweep directory holds is removed. A kept piece whose other seeds
+    are read again now keeps its share of the wall clock and runs, so none is counted twice.
 
     Small text files only; checkpoints stay in the sweep directory. Returns the setting dirs.
     """
@@ -451,9 +478,10 @@ def collect(job: Job, out_root: Path, command: str, log=print,
         runs: dict[str, Any] = {}
         walls: dict[Path, float] = {}
         try:
-            before = json.loads((dest / "run_info.json").read_text(encoding="utf-8"))["runs"]
+            before_meta = json.loads((dest / "run_info.json").read_text(encoding="utf-8"))
+            before = before_meta["runs"]
         except (OSError, ValueError, KeyError):
-            before = {}
+            before_meta, before = {}, {}
         for r in mine:
             src = r["_dir"] / r["run"] / "metrics.csv"
             if not src.is_file():
@@ -482,14 +510,34 @@ def collect(job: Job, out_root: Path, command: str, log=print,
             elif cached is not None and done and \
                     before.get(name, {}).get("epochs") == runs[name]["epochs"]:
                 runs[name]["best_policy"] = cached  # not tested now; the run has not changed
+        kept: list[dict[str, Any]] = []  # pieces collected before whose directories are gone
+        if keep_collected and before_meta:
+            for piece in _collected_pieces(before_meta):
+                names = [f"s{k}" for k in piece["seeds"]
+                         if f"s{k}" not in runs and k < job.seeds and f"s{k}" in before
+                         and (dest / f"s{k}.csv").is_file()]
+                if not names:
+                    continue
+                if len(names) < len(piece["seeds"]):  # its other seeds are read again now
+                    share = len(names) / len(piece["seeds"])
+                    piece = {**piece, "seeds": [int(n[1:]) for n in names],
+                             "runs": round(int(piece.get("runs") or 0) * share),
+                             "wall_clock_s": float(piece.get("wall_clock_s") or 0.0) * share}
+                for n in names:
+                    runs[n] = before[n]
+                kept.append(piece)
+                log(f"[{job.task} {s.name}] kept {', '.join(names)}, collected before from "
+                    f"{piece['dir']}, whose sweep directory is gone")
         for stale in dest.glob("s*.csv"):
             if stale.stem not in runs:
                 stale.unlink()
-        pair = (mine[0]["lambda_r"], mine[0]["lambda_h"]) if mine else (None, None)
+        pair = (mine[0]["lambda_r"], mine[0]["lambda_h"]) if mine else (
+            (before_meta.get("lambda_r"), before_meta.get("lambda_h")) if kept else (None, None))
         # Runs of one sweep are one program: they share its wall clock (first epoch's
         # compilation included, process start and env build not). Pieces add up.
-        wall = sum(walls.values())
-        n_runs = sum(i.get("n_runs") or 0 for p, _, i in loaded if p in walls)
+        wall = sum(walls.values()) + sum(float(p.get("wall_clock_s") or 0.0) for p in kept)
+        n_runs = sum(i.get("n_runs") or 0 for p, _, i in loaded if p in walls) \
+            + sum(int(p.get("runs") or 0) for p in kept)
         meta = {
             "kind": job.kind, "profile": job.profile, "task": job.task, "setting": s.name,
             "label": s.label, "algo": s.algo, "order": s.order,
@@ -510,10 +558,12 @@ def collect(job: Job, out_root: Path, command: str, log=print,
             "wall_clock_s": wall,
             "wall_clock_per_run_s": wall / n_runs if n_runs else None,
         }
-        if len(walls) > 1:  # run in pieces (--first-seed): each piece's own record
-            meta["pieces"] = [
+        if len(walls) + len(kept) > 1:  # run in pieces (--first-seed): each piece's record
+            meta["pieces"] = kept + [
                 {"dir": _rel(p), "command": i.get("command"), "runs": i.get("n_runs"),
-                 "wall_clock_s": walls[p], "hardware": {k: i.get(k) for k in HARDWARE_KEYS}}
+                 "wall_clock_s": walls[p], "hardware": {k: i.get(k) for k in HARDWARE_KEYS},
+                 "seeds": sorted({int(r["seed"]) for r in mine if r["_dir"] == p
+                                  and f"s{r['seed']}" in runs})}
                 for p, _, i in loaded if p in walls]
         write_text_atomic(dest / "run_info.json", json.dumps(meta, indent=1, sort_keys=True) + "\n")
         written.append(dest)
@@ -593,6 +643,10 @@ def add_common_args(ap: Any) -> None:
     ap.add_argument("--collect-only", action="store_true",
                     help="train nothing: copy what the sweep directories hold now (e.g. while "
                     "the sweeps run in another process) and write the report")
+    ap.add_argument("--keep-collected", action="store_true",
+                    help="when collecting, keep the seeds already in --out whose sweep "
+                    "directories are gone (a setting run in pieces on machines that do not "
+                    "share --runs-dir); without it such seeds are removed")
     ap.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                     help="progress bars (default: when stderr is a terminal)")
     ap.add_argument("--eval-episodes", type=int, default=EVAL_EPISODES, metavar="N",
@@ -710,7 +764,8 @@ def run_experiment(kind: str, script: str, args: Any, argv: Sequence[str],
                     run_job(job, progress and main, dry_run=args.dry_run,
                             log=print if main else (lambda *a, **k: None))
                 if not args.dry_run and main:
-                    collect(job, args.out, command, eval_episodes=args.eval_episodes)
+                    collect(job, args.out, command, eval_episodes=args.eval_episodes,
+                            keep_collected=args.keep_collected)
             if not args.dry_run and main:
                 import report
 

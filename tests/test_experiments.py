@@ -206,6 +206,54 @@ def test_a_setting_run_in_pieces_is_collected_as_one(results, tmp_path, capsys):
     assert "--first-seed 2 leaves no seed" in capsys.readouterr().err
 
 
+def test_keep_collected_keeps_seeds_whose_sweep_directories_are_gone(results, tmp_path,
+                                                                     capsys):
+    """A setting run in pieces on machines that do not share a runs directory: with
+    --keep-collected, seeds collected before whose sweep directory is gone stay as they were
+    (CSV, run record), the new piece's seed is added, and the old piece keeps its share of the
+    wall clock; without it, they are removed."""
+    src = results["runs"] / "benchmark/tiny/FetchReach/her"  # seeds 0-1, one sweep
+    out = tmp_path / "out"
+    args = ["--profile", "tiny", "--out", str(out), "--no-progress", "--eval-episodes", "0",
+            "--algos", "her", "--seeds", "2", "--collect-only"]
+    first = tmp_path / "machine1"
+    shutil.copytree(src, first / "benchmark/tiny/FetchReach/her")
+    assert benchmark.main([*args, "--runs-dir", str(first)]) == 0
+    d = out / "benchmark/tiny/FetchReach/her"
+    old = json.loads((d / "run_info.json").read_text())
+    s0 = (d / "s0.csv").read_bytes()
+    # Another machine ran seed 1 again as a piece of its own; machine 1's directory is gone.
+    second = tmp_path / "machine2"
+    piece = second / "benchmark/tiny/FetchReach/her.s1-1"
+    shutil.copytree(src, piece)
+    shutil.rmtree(piece / "lr1_lh1_s0")
+    summary = json.loads((piece / "summary.json").read_text())
+    summary["runs"] = [r for r in summary["runs"] if r["seed"] == 1]
+    (piece / "summary.json").write_text(json.dumps(summary))
+    info = json.loads((piece / "run_info.json").read_text())
+    (piece / "run_info.json").write_text(json.dumps({**info, "n_runs": 1}))
+    shutil.rmtree(first)
+    capsys.readouterr()
+    assert benchmark.main([*args, "--runs-dir", str(second), "--keep-collected"]) == 0
+    assert "kept s0, collected before from" in capsys.readouterr().out
+    meta = json.loads((d / "run_info.json").read_text())
+    assert (d / "s0.csv").read_bytes() == s0 and meta["runs"]["s0"] == old["runs"]["s0"]
+    assert meta["seeds"] == [0, 1]
+    assert [p["seeds"] for p in meta["pieces"]] == [[0], [1]]
+    assert [p["runs"] for p in meta["pieces"]] == [1, 1]
+    assert meta["pieces"][0]["wall_clock_s"] == pytest.approx(old["wall_clock_s"] / 2)
+    assert meta["pieces"][1]["dir"].endswith("her.s1-1")
+    assert meta["wall_clock_s"] == pytest.approx(sum(p["wall_clock_s"] for p in meta["pieces"]))
+    assert meta["wall_clock_per_run_s"] == pytest.approx(meta["wall_clock_s"] / 2)
+    # Collected again on the same machine: the kept piece stays as it is.
+    assert benchmark.main([*args, "--runs-dir", str(second), "--keep-collected"]) == 0
+    assert json.loads((d / "run_info.json").read_text())["pieces"] == meta["pieces"]
+    # Without --keep-collected, the seed no sweep directory holds is removed.
+    assert benchmark.main([*args, "--runs-dir", str(second)]) == 0
+    assert sorted(p.name for p in d.glob("s*.csv")) == ["s1.csv"]
+    assert json.loads((d / "run_info.json").read_text())["seeds"] == [1]
+
+
 def test_a_seed_rerun_as_a_piece_is_read_from_the_piece_and_status_shows_both(results, tmp_path,
                                                                              capsys):
     """A seed held both by an abandoned whole sweep (fewer epochs) and by a piece that ran it
