@@ -40,7 +40,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 DEFAULT_OUT = HERE / "results" / "bench_gpu.md"
 GPU_KEYS = ["num_envs=4096", "batch_size=8192", "n_batches=200", "buffer_size=10000000"]
-STAGES = ("env", "reach", "push", "rdher")
+STAGES = ("reach", "push", "rdher", "env")
 
 
 def env_worker(batches: list[int], deadline: float) -> None:
@@ -158,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
     py = sys.executable
     keys = [k.replace("num_envs=4096", f"num_envs={a.num_envs}") for k in GPU_KEYS]
     # Each stage's share of the whole budget (the last one takes what is left).
-    share = {"env": 0.12, "reach": 0.2, "push": 0.53, "rdher": 0.15}
+    share = {"reach": 0.27, "push": 0.5, "rdher": 0.17, "env": 0.2}
     result: dict = {"hardware": gpu_info(), "budget_s": a.budget, "stages": {}}
     log = open(out_dir / "bench_gpu.log", "w", encoding="utf-8")
 
