@@ -171,10 +171,12 @@ def main(argv: list[str] | None = None) -> int:
             result["stages"][s] = {"skipped": f"{left():.0f} s left"}
             continue
         run_dir = runs / s
-        common = ["progress=false", f"run_dir={run_dir}"]
+        # progress bars go to the log: where a stage is stopped at its deadline, they show how far
+        # it got and when its first cycle began (the end of compiling)
+        common = ["progress=true", f"run_dir={run_dir}"]
         if s == "env":
             r = run_stage(s, [py, str(Path(__file__).resolve()), "--batches", a.batches,
-                              "--env-worker", str(time.time() + 0.6 * cap)], cap, log, runs)
+                              "--env-worker", str(time.time() + 0.5 * cap)], cap, log, runs)
             lines = [json.loads(ln) for ln in r.pop("output").splitlines()
                      if ln.startswith("{")]
             r["rows"] = [ln for ln in lines if "batch" in ln]
