@@ -13,6 +13,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 EXP = Path(__file__).resolve().parents[1] / "experiments"
@@ -607,3 +608,15 @@ def test_bench_gpu_first_reaching_and_bad_input(capsys):
     assert bench_gpu.main(["--stages", "reach,nope"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("error: unknown stage 'nope'") and "\n" not in err
+
+
+def test_floor_expected_best_epoch_matches_simulation():
+    """floor.py's expected best of E epochs (E[max of E Binomial(n, p)] / n, from the CDF)
+    against a direct simulation of never-learning runs."""
+    import floor  # noqa: PLC0415
+
+    rng = np.random.default_rng(0)
+    for p, n, epochs in [(0.055, 10, 50), (0.055, 20, 50), (0.3, 10, 5), (0.0, 10, 50)]:
+        sim = rng.binomial(n, p, size=(40_000, epochs)).max(axis=1).mean() / n
+        assert floor.expected_best(p, n, epochs) == pytest.approx(sim, abs=0.004)
+    assert floor.expected_best(1.0, 10, 3) == pytest.approx(1.0)
