@@ -32,7 +32,7 @@ import json
 import math
 import statistics
 import sys
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -215,6 +215,27 @@ def welch(xs: Sequence[float], ys: Sequence[float]) -> tuple[float, float]:
         warnings.simplefilter("ignore", RuntimeWarning)
         p = float(sps.ttest_ind(xs, ys, equal_var=False).pvalue)
     return diff, p
+
+
+def paired(xs: Mapping[int, float], ys: Mapping[int, float]) -> tuple[float, float, int]:
+    """Over the seeds both hold: the mean of the per-seed differences xs - ys, the two-sided p
+    of the paired t-test (nan under 2 common seeds or with no variance in the differences), and
+    the number of common seeds. One seed gives the same test goals epoch by epoch whatever the
+    algorithm, so a per-seed difference cancels the luck of the test set."""
+    import warnings
+
+    from scipy import stats as sps
+
+    common = sorted(set(xs) & set(ys))
+    if not common:
+        return math.nan, math.nan, 0
+    d = [float(xs[k]) - float(ys[k]) for k in common]
+    if len(d) < 2 or statistics.pstdev(d) == 0:
+        return statistics.fmean(d), math.nan, len(d)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        p = float(sps.ttest_rel([xs[k] for k in common], [ys[k] for k in common]).pvalue)
+    return statistics.fmean(d), p, len(d)
 
 
 def vs_cell(diff: float, p: float) -> str:
@@ -667,7 +688,8 @@ def load_setting(path: Path) -> SettingData:
 def compare_markdown(paths: Sequence[Path]) -> str:
     """Every setting of ``paths`` against every other: per measure the difference of the means
     over seeds and the two-sided p of Welch's test, as RESULTS.md quotes them between settings
-    that are not HER (which the summaries' 'vs HER' columns cover). In %."""
+    that are not HER (which the summaries' 'vs HER' columns cover); then the same pairs paired
+    by seed (:func:`paired`). In %."""
     sets = [load_setting(p) for p in paths]
     labels = ["/".join(Path(p).resolve().parts[-4:]) for p in paths]  # kind/profile/task/setting
     seeds = [per_seed(s) for s in sets]
@@ -682,6 +704,15 @@ def compare_markdown(paths: Sequence[Path]) -> str:
         cells = [vs_cell(*welch(list(seeds[i][k].values()), list(seeds[j][k].values())))
                  for k, _ in MEASURES]
         out.append(f"| {labels[i]} − {labels[j]} | " + " | ".join(cells) + " |")
+    out += ["", "Paired by seed (over the seeds both hold; one seed gives the same test goals "
+            "whatever the setting): mean of the per-seed differences (paired t-test p).", "",
+            "| A − B | seeds | " + " | ".join(h for _, h in MEASURES) + " |",
+            "|---|---|" + "---|" * len(MEASURES)]
+    for i, j in itertools.combinations(range(len(sets)), 2):
+        res = [paired(seeds[i][k], seeds[j][k]) for k, _ in MEASURES]
+        n = max(r[2] for r in res)
+        out.append(f"| {labels[i]} − {labels[j]} | {n} | "
+                   + " | ".join(vs_cell(d, p) for d, p, _ in res) + " |")
     return "\n".join(out) + "\n"
 
 

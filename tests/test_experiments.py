@@ -583,6 +583,13 @@ def test_compare_is_welch_between_any_two_settings(tmp_path, capsys, one_line_er
     assert row == (f"| benchmark/paper/FetchPush/a − benchmark/paper/FetchPush/b | "
                    f"+35.0 (p {p_final:.2g}) | - | +35.0 (p {p_final:.2g}) | "
                    f"+21.0 (p {p_mean:.2g}) |")
+    # Paired by seed, over the 3 seeds both hold (b's seed 3 has no partner).
+    pp_final = sps.ttest_rel([0.9, 0.8, 1.0], [0.5, 0.7, 0.4]).pvalue
+    pp_mean = sps.ttest_rel([0.54, 0.48, 0.6], [0.3, 0.42, 0.24]).pvalue
+    rows = [ln for ln in out.splitlines() if ln.startswith("| benchmark/paper/FetchPush/a −")]
+    assert len(rows) == 2 and rows[1] == (
+        f"| benchmark/paper/FetchPush/a − benchmark/paper/FetchPush/b | 3 | "
+        f"+36.7 (p {pp_final:.2g}) | - | +36.7 (p {pp_final:.2g}) | +22.0 (p {pp_mean:.2g}) |")
     # Not a setting's directory, or only one: a one-line error and exit 2.
     for args, why in (([a, tmp_path], "no run_info.json"), ([a], "at least two")):
         p = subprocess.Popen([sys.executable, str(EXP / "report.py"), "--compare",
