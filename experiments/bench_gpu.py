@@ -38,6 +38,10 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+from bench_envs import versions  # noqa: E402
+from bench_learning import first_hit  # noqa: E402
+
 DEFAULT_OUT = HERE / "results" / "bench_gpu.md"
 GPU_KEYS = ["num_envs=4096", "batch_size=8192", "n_batches=200", "buffer_size=10000000"]
 STAGES = ("reach", "push", "rdher", "env")
@@ -46,8 +50,6 @@ STAGES = ("reach", "push", "rdher", "env")
 def env_worker(batches: list[int], deadline: float) -> None:
     """Stage 1, in its own process: one JSON line per batch size."""
     import jax
-
-    sys.path.insert(0, str(HERE))
     from bench_envs import batch_keys, compile_timed, make_rollout
     from rdher_jax.envs import make_env
 
@@ -98,17 +100,6 @@ def read_metrics(run_dir: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(fh))
 
 
-def first_reaching(rows: list[dict[str, str]], target: float, window: int = 3) -> dict | None:
-    """The first epoch whose mean test success over the last ``window`` epochs is >= target."""
-    for i in range(window - 1, len(rows)):
-        mean = sum(float(r["test_success"]) for r in rows[i - window + 1:i + 1]) / window
-        if mean >= target:
-            r = rows[i]
-            return {"epoch": int(r["epoch"]), "env_steps": int(float(r["env_steps"])),
-                    "updates": int(float(r["updates"])), "wall_time": float(r["wall_time"])}
-    return None
-
-
 def gpu_info() -> dict:
     info: dict = {"machine": platform.machine(), "python": platform.python_version(),
                   "cpu_count": os.cpu_count()}
@@ -118,14 +109,7 @@ def gpu_info() -> dict:
         info["gpu"] = q.stdout.strip()
     except (OSError, subprocess.TimeoutExpired):
         info["gpu"] = None
-    vers = {}
-    for mod in ("jax", "jaxlib", "mujoco", "flax", "optax", "orbax.checkpoint"):
-        try:
-            m = __import__(mod, fromlist=["__version__"])
-            vers[mod] = getattr(m, "__version__", "?")
-        except ImportError:
-            vers[mod] = None
-    info["versions"] = vers
+    info["versions"] = versions()
     return info
 
 
@@ -203,7 +187,8 @@ def main(argv: list[str] | None = None) -> int:
             target = {"reach": 0.95, "push": 0.9}.get(s)
             if target is not None:
                 r["target"] = target
-                r["reached"] = first_reaching(rows, target)
+                # the trainer's stop_success rule: a trailing mean of 3 epochs
+                r["reached"] = (first_hit(rows, target, 3) or {}).get("window")
         result["stages"][s] = r
         (a.out.with_suffix(".json")).write_text(json.dumps(result, indent=1) + "\n")
     log.close()
@@ -240,7 +225,7 @@ def render(res: dict) -> str:
             continue
         reached = r.get("reached")
         rc = f"{r.get('target')}: " + (f"{reached['epoch']}, {reached['env_steps']:,}, "
-                                       f"{reached['wall_time']:.0f}" if reached else "no") \
+                                       f"{reached['wall_s']:.0f}" if reached else "no") \
             if "target" in r else "n/a"
         last = r.get("last")
         ls = (f"{float(last['test_success']):.3f}, {int(float(last['env_steps'])):,}, "

@@ -598,20 +598,20 @@ def test_compare_is_welch_between_any_two_settings(tmp_path, capsys, one_line_er
         assert why in one_line_error(p)
 
 
-def test_bench_gpu_first_reaching_and_bad_input(capsys):
-    """bench_gpu.py's target check is a mean over 3 consecutive epochs (the trainer's own
-    stop_success rule), and a bad stage name is a one-line error with exit status 2."""
+def test_bench_gpu_target_rule_and_bad_input(capsys):
+    """bench_gpu.py's target check (bench_learning.first_hit's trailing mean of 3 epochs, the
+    trainer's stop_success rule), and a bad stage name is a one-line error with exit status 2."""
     import bench_gpu  # noqa: PLC0415
 
-    rows = [{"epoch": str(i + 1), "env_steps": str(1000 * (i + 1)), "updates": "40",
+    rows = [{"epoch": str(i + 1), "env_steps": str(1000 * (i + 1)),
              "wall_time": str(10.0 * (i + 1)), "test_success": str(s)}
             for i, s in enumerate([0.2, 1.0, 1.0, 0.8, 1.0, 0.9, 1.0])]
-    hit = bench_gpu.first_reaching(rows, 0.95)
     # 3-epoch means ending at epochs 3..7: 0.733, 0.933, 0.933, 0.9, 0.967
-    assert hit == {"epoch": 7, "env_steps": 7000, "updates": 40, "wall_time": 70.0}
-    assert bench_gpu.first_reaching(rows, 0.9) == {"epoch": 4, "env_steps": 4000,
-                                                   "updates": 40, "wall_time": 40.0}
-    assert bench_gpu.first_reaching(rows[:2], 0.1) is None  # fewer than 3 epochs
+    assert bench_gpu.first_hit(rows, 0.95, 3)["window"] == {"epoch": 7, "env_steps": 7000,
+                                                            "wall_s": 70.0}
+    assert bench_gpu.first_hit(rows, 0.9, 3)["window"]["epoch"] == 4
+    assert bench_gpu.first_hit(rows, 0.9, 3)["single"]["epoch"] == 2
+    assert "window" not in (bench_gpu.first_hit(rows[:2], 0.1, 3) or {})  # under 3 epochs
     assert bench_gpu.main(["--stages", "reach,nope"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("error: unknown stage 'nope'") and "\n" not in err
