@@ -209,6 +209,19 @@ def make_program(cfg, env) -> Program:
         return _learn(ts, hp, ts.pending.episode, ts.pending.success, key, k_norm, k_upd,
                       k_bias)
 
+    def actor_step_count(ts: TrainState, i: jax.Array) -> jax.Array:
+        """The gradient-step counter the actor's ``policy_delay`` reads, for step ``i`` of a
+        cycle. ``ts.updates`` is always a multiple of ``n_batches`` (it grows by ``n_batches``
+        a cycle, and ``n_batches`` cannot change on resume), so when ``policy_delay`` divides
+        ``n_batches``, ``(ts.updates + i) % policy_delay == i % policy_delay`` and the scan's
+        own index gives the same steps. It matters under ``vmap`` (a sweep): ``ts.updates`` is
+        one value per run there, and a ``lax.cond`` on a per-run predicate runs both branches
+        (the actor's gradient on every step), while ``i`` is shared by all runs and keeps the
+        skipped actor steps free."""
+        if cfg.n_batches % cfg.policy_delay == 0:
+            return i
+        return ts.updates + i
+
     def _learn(ts: TrainState, hp: Hyper, ep: rb.Episode, success: jax.Array, key, k_norm,
                k_upd, k_bias):
         buf = rb.add(ts.buffer, ep)
@@ -232,7 +245,7 @@ def make_program(cfg, env) -> Program:
                                                stop_at_success=cfg.terminal == "success")
             else:
                 batch = relabel.mark_terminal(buf, batch, cfg.terminal, hp.ddpg.gamma)
-            ds, m = agent.update(ds, batch, hp.ddpg, k_update, ts.updates + i)
+            ds, m = agent.update(ds, batch, hp.ddpg, k_update, actor_step_count(ts, i))
             if cfg.target_every:
                 ds = agent.target_update(ds, hp.ddpg, (ts.updates + i + 1) % cfg.target_every == 0)
             m["frac_her"] = jnp.mean(batch.source == relabel.HER)
