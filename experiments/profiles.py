@@ -425,7 +425,8 @@ def collect(job: Job, out_root: Path, command: str, log=print,
     run_info.json beside the best 10-episode epoch of its metrics. Only in a one-process run:
     the checkpoints of a multi-process sweep are tested by ``--collect-only`` afterwards.
 
-    A setting run in pieces (``--first-seed``) is collected from all of them: each seed from
+    A setting run in pieces (``--first-seed``) is collected from all of them: each seed below
+    ``job.seeds`` (a later piece, perhaps still running, waits for a collect that names it) from
     the first directory that holds it (the whole sweep's, then the pieces'), the wall clock
     summed over the pieces, each piece recorded under ``pieces`` with its seeds.
 
@@ -468,7 +469,13 @@ def collect(job: Job, out_root: Path, command: str, log=print,
                 if use is old:
                     continue
             best[key] = {**r, "_dir": p}
-    rows = list(best.values())
+    # Only the seeds this collect names (0..seeds-1): a piece still running for a later seed
+    # is not mixed into a summary of fewer.
+    rows = [r for r in best.values() if int(r["seed"]) < job.seeds]
+    later = sorted({int(r["seed"]) for r in best.values()} - {int(r["seed"]) for r in rows})
+    if later:
+        log(f"[{job.task} {job.name}] not collected: seed(s) {', '.join(map(str, later))}, "
+            f"beyond --seeds {job.seeds}")
     written = []
     for s in job.outputs:
         mine = [r for r in rows

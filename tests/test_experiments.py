@@ -205,6 +205,14 @@ def test_a_setting_run_in_pieces_is_collected_as_one(results, tmp_path, capsys):
     assert "'seeds=[3,4]'" in line and line.endswith("/benchmark/tiny/FetchReach/her.s3-4")
     assert benchmark.main([*args, "--seeds", "2", "--first-seed", "2", "--dry-run"]) == 2
     assert "--first-seed 2 leaves no seed" in capsys.readouterr().err
+    # A collect names its seeds: with --seeds 2 the later piece (it may still be running)
+    # is left out, its CSV and its wall clock with it.
+    assert benchmark.main([*args, "--seeds", "2", "--collect-only"]) == 0
+    assert "not collected: seed(s) 2, beyond --seeds 2" in capsys.readouterr().out
+    assert sorted(p.name for p in d.glob("s*.csv")) == ["s0.csv", "s1.csv"]
+    two = json.loads((d / "run_info.json").read_text())
+    assert two["seeds"] == [0, 1] and "pieces" not in two
+    assert two["wall_clock_s"] == pytest.approx(meta["pieces"][0]["wall_clock_s"])
 
 
 def test_keep_collected_keeps_seeds_whose_sweep_directories_are_gone(results, tmp_path,
