@@ -247,12 +247,17 @@ def test_merge_equals_sort(seed, P, n):
     new_idx = (1000 + np.arange(n)).astype(np.int32)
     k, i = dher.merge(jnp.asarray(keys), jnp.asarray(idx), jnp.asarray(drop),
                       jnp.asarray(new_keys), jnp.asarray(new_idx))
-    want = sorted(list(zip(keys[~drop], idx[~drop], strict=True))
-                  + list(zip(new_keys, new_idx, strict=True)))
-    k, i = np.asarray(k), np.asarray(i)
-    np.testing.assert_array_equal(k, [a for a, _ in want])
-    got = sorted(zip(k.tolist(), i.tolist(), strict=True))
-    assert got == sorted((int(a), int(b)) for a, b in want)
+    # The exact order: by key, an equal key's kept entries first (in their old order), then
+    # its new ones in the order the merge's own sort gives them (the runs' matches, and so
+    # their rows, depend on it).
+    nk, ni = (np.asarray(a) for a in jax.lax.sort((jnp.asarray(new_keys), jnp.asarray(new_idx)),
+                                                   num_keys=1))
+    entries = [(int(a), 0, r, int(b)) for r, (a, b) in enumerate(zip(keys[~drop], idx[~drop],
+                                                                     strict=True))]
+    entries += [(int(a), 1, r, int(b)) for r, (a, b) in enumerate(zip(nk, ni, strict=True))]
+    want = sorted(entries)
+    np.testing.assert_array_equal(np.asarray(k), [e[0] for e in want])
+    np.testing.assert_array_equal(np.asarray(i), [e[3] for e in want])
 
 
 def cher_select_np(goals, prox, lam, noise, sample):

@@ -106,23 +106,31 @@ def cell_keys(x: jax.Array, tol: jax.Array) -> jax.Array:
     return key
 
 
+def cumsum(x: jax.Array) -> jax.Array:
+    """Inclusive prefix sum of an int32 vector as a parallel scan. On XLA:CPU ``jnp.cumsum``
+    of the index's million entries takes about 4x as long (16 against 4 ms)."""
+    return jax.lax.associative_scan(jnp.add, x)
+
+
 def merge(keys: jax.Array, idx: jax.Array, drop: jax.Array, new_keys: jax.Array,
           new_idx: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Sorted ``(keys, idx)`` without the ``drop``-ped entries and with the new ones merged in.
 
-    ``drop`` must mark exactly ``len(new_keys)`` entries, so the size stays fixed. Linear in the
-    size (one cumsum, one scatter) plus a binary search per entry into the few new keys.
+    ``drop`` must mark exactly ``len(new_keys)`` entries, so the size stays fixed. A kept entry
+    goes before new entries with an equal key. Linear in the size: one prefix sum and one
+    scatter, plus a binary search per new key into the old ones.
     """
     P, n = keys.shape[0], new_keys.shape[0]
     new_keys, new_idx = jax.lax.sort((new_keys, new_idx), num_keys=1)
-    kept_rank = jnp.cumsum(~drop, dtype=jnp.int32) - 1
-    # New entries go after kept entries with equal keys: old ones shift by the new keys <= them.
-    n_new_le = jnp.searchsorted(new_keys, keys, side="left", method="scan_unrolled")
-    pos_old = jnp.where(drop, P, kept_rank + n_new_le.astype(jnp.int32))
+    # New key j goes after the old keys <= it: lo[j] is the first old entry above it, so an old
+    # entry i moves up by the new keys with lo <= i, and down by the dropped entries before it.
     lo = jnp.searchsorted(keys, new_keys, side="right", method="scan").astype(jnp.int32)
-    dropped_before = jnp.concatenate([jnp.zeros(1, jnp.int32),
-                                      jnp.cumsum(drop, dtype=jnp.int32)])[lo]
-    pos_new = lo - dropped_before + jnp.arange(n, dtype=jnp.int32)
+    c = cumsum((~drop).astype(jnp.int32) + jnp.zeros(P, jnp.int32).at[lo].add(1, mode="drop"))
+    pos_old = jnp.where(drop, P, c - 1)
+    # The kept entries before lo[j]: c counts them and the new keys with lo < lo[j].
+    earlier = jnp.sum(lo[None, :] < lo[:, None], axis=1, dtype=jnp.int32)
+    kept_before = jnp.where(lo > 0, c[jnp.maximum(lo - 1, 0)] - earlier, 0)
+    pos_new = kept_before + jnp.arange(n, dtype=jnp.int32)
     # Every kept entry and every new one lands on a distinct position of [0, P); dropped ones
     # all go to P and are discarded.
     out_k = keys.at[pos_old].set(keys, mode="drop").at[pos_new].set(new_keys)
