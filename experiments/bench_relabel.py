@@ -41,6 +41,27 @@ TARGETS = {"dher": 1.3, "rdher": 1.3, "cher": 2.0}
 MERGE_EVERY = 4  # the suggested DHER change that merges several cycles' episodes at once
 
 
+def merge_before(keys, idx, drop, new_keys, new_idx):
+    """``dher.merge`` as it was before its single parallel prefix sum (not library code): two
+    ``jnp.cumsum`` over the whole index and a binary search per stored key into the new keys.
+    Timed beside the library's merge, which gives the same arrays."""
+    import jax
+    import jax.numpy as jnp
+
+    P, n = keys.shape[0], new_keys.shape[0]
+    new_keys, new_idx = jax.lax.sort((new_keys, new_idx), num_keys=1)
+    kept_rank = jnp.cumsum(~drop, dtype=jnp.int32) - 1
+    n_new_le = jnp.searchsorted(new_keys, keys, side="left", method="scan_unrolled")
+    pos_old = jnp.where(drop, P, kept_rank + n_new_le.astype(jnp.int32))
+    lo = jnp.searchsorted(keys, new_keys, side="right", method="scan").astype(jnp.int32)
+    dropped_before = jnp.concatenate([jnp.zeros(1, jnp.int32),
+                                      jnp.cumsum(drop, dtype=jnp.int32)])[lo]
+    pos_new = lo - dropped_before + jnp.arange(n, dtype=jnp.int32)
+    out_k = keys.at[pos_old].set(keys, mode="drop").at[pos_new].set(new_keys)
+    out_i = idx.at[pos_old].set(idx, mode="drop").at[pos_new].set(new_idx)
+    return out_k, out_i
+
+
 def compute_reward(ag, g):
     import jax.numpy as jnp
 
@@ -497,19 +518,25 @@ def cycle_cost(size: int, repeats: int, min_time: float, args, setups: dict) -> 
         kg = jnp.where(failed[:, None], dher_mod.cell_keys(g, tol), dher_mod.SENTINEL)
         return first, pts, ka.reshape(-1), kg.reshape(-1)
 
-    @jax.jit
-    def dher_merges(s, b, p):
-        first, pts, ka, kg = merge_inputs(b, p.dher_tol)
+    def make_merges(merge):
+        @jax.jit
+        def merges(s, b, p):
+            first, pts, ka, kg = merge_inputs(b, p.dher_tol)
 
-        def drop(idx):
-            return (idx // stride - first) % cap < n_new
+            def drop(idx):
+                return (idx // stride - first) % cap < n_new
 
-        def body(_, s):
-            gk, gi = dher_mod.merge(s.g_keys, s.g_idx, drop(s.g_idx), kg, pts)
-            ak, ai = dher_mod.merge(s.ag_keys, s.ag_idx, drop(s.ag_idx), ka, pts)
-            return s.replace(g_keys=gk, g_idx=gi, ag_keys=ak, ag_idx=ai)
+            def body(_, s):
+                gk, gi = merge(s.g_keys, s.g_idx, drop(s.g_idx), kg, pts)
+                ak, ai = merge(s.ag_keys, s.ag_idx, drop(s.ag_idx), ka, pts)
+                return s.replace(g_keys=gk, g_idx=gi, ag_keys=ak, ag_idx=ai)
 
-        return jax.lax.fori_loop(0, k_upd, body, s)
+            return jax.lax.fori_loop(0, k_upd, body, s)
+
+        return merges
+
+    dher_merges = make_merges(dher_mod.merge)
+    dher_merges_before = make_merges(merge_before)
 
     def histogram(keys, new):  # each stored key's count of smaller new keys, as increments
         lo = jnp.searchsorted(keys, jnp.sort(new), side="right", method="scan")
@@ -554,6 +581,11 @@ def cycle_cost(size: int, repeats: int, min_time: float, args, setups: dict) -> 
     bench.add("dher_update_parts", dher_update, dstate, buf, hps["dher"].relabel, per=k_upd,
               group=g)
     bench.add("dher_merges", dher_merges, dstate, buf, hps["dher"].relabel, per=k_upd, group=g)
+    got, want = (f(dstate, buf, hps["dher"].relabel) for f in (dher_merges, dher_merges_before))
+    assert all(bool(jnp.array_equal(a, b)) for a, b in zip(jax.tree.leaves(got),
+                                                           jax.tree.leaves(want), strict=True))
+    bench.add("dher_merges_before", dher_merges_before, dstate, buf, hps["dher"].relabel,
+              per=k_upd, group=g)
     kg_new = merge_inputs(buf, hps["dher"].relabel.dher_tol)[3]
     want_rank = rank_scan(dstate.g_keys, kg_new)
     for f in (rank_search, rank_cumsum):
@@ -742,6 +774,8 @@ def report(args, cmd: str, info: dict) -> str:
         ("DHER sample alone (40 x 256: HER rows + combined rows + mix)", "sample/dher"),
         (f"DHER matching update, once per cycle at {p2['size']:.0e}", "dher_update_parts"),
         ("- of which the two index merges (`dher.merge` x 2)", "dher_merges"),
+        ("- *alt*: the two merges as they were before (two `jnp.cumsum` and a binary search "
+         "per stored key each; the same arrays)", "dher_merges_before"),
         ("- - one merge's rank step: a histogram of the new keys' positions + a parallel "
          "prefix sum (x 2 per update)", "merge_rank_scan"),
         ("- - *alt*: the same ranks by a binary search per stored key (the merge before)",
@@ -813,7 +847,9 @@ def reading(info: dict) -> list[str]:
         f"({fmt_ms(med['dher_update_parts'])} ms), the two merges take "
         f"{fmt_ms(med['dher_merges'])} ms: linear passes over the whole index (a parallel "
         f"prefix sum over the stored keys, {fmt_ms(med['merge_rank_scan'])} ms each, and a "
-        "scatter of keys and points), whatever the number of new episodes. The "
+        "scatter of keys and points), whatever the number of new episodes; the same merges as "
+        f"they were before that prefix sum take {fmt_ms(med['dher_merges_before'])} ms "
+        f"({med['dher_merges_before'] / med['dher_merges']:.1f}x). The "
         f"sample alone costs {fmt_ms(med['sample/dher'])} ms per cycle against HER's "
         f"{fmt_ms(med['sample/her'])} (combined rows are gathered for every row, then mixed "
         "in).")
