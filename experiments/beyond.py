@@ -11,8 +11,9 @@ benchmark's budget (``cpu``: FetchPush ``preset=fast``, sequential, 500,000 env 
   never run here.
 - ``rdher_f0.2``, ``rdher_f0.05``: the paper's pair with a smaller cap on DHER's combined rows,
   ``dher_fraction`` (at most that times (1 − recent success) of a batch; the authors' 0.8).
-- ``rdher_plain``: the authors' plain mix, the rows that are not combined not relabelled
-  (``replay_k=0``, as in mengf1/DHER ``dher_sample.py``), at their share.
+- ``rdher_plain``, ``dher_plain``: the authors' plain mix, the rows that are not combined not
+  relabelled (``replay_k=0``, as in mengf1/DHER ``dher_sample.py``), at their share; at
+  ``--profile paper`` these are Table 2's DHER and RDHER rows with the authors' mix.
 - ``rdher_f0.2_lr2_lh1``, ``rdher_f0.2_lr1_lh2``: other weights at the 0.2 share;
   ``dher_f0.2``: no weights at all (DHER, i.e. RDHER at (1, 1)).
 - ``rdher_clip``: the paper's pair and share with every row's critic target clipped to
@@ -56,6 +57,8 @@ SETTINGS: dict[str, NamedSetting] = {
     "rdher_f0.2_lr1_lh2": ("RDHER (1, 2), share 0.2", "rdher", ((1.0, 2.0),),
                            ("dher_fraction=0.2",), None),
     "dher_f0.2": ("DHER, share 0.2", "dher", None, ("dher_fraction=0.2",), None),
+    "dher_plain": ("DHER, share 0.8, plain mix (replay_k=0)", "dher", None, ("replay_k=0",),
+                   None),
     "rdher_clip": ("RDHER (the paper's pair), share 0.8, unweighted clip", "rdher", None,
                    ("target_clip=unweighted",), None),
 }
