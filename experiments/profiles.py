@@ -110,8 +110,9 @@ REACH_CPU = Budget(5, {"epochs": 5, "n_cycles": 10, **PAPER_LEARNER},
 # of one core, beside another sweep on the other core; on another day the same budget as
 # one-seed pieces took 80-87 min per seed (beyond/cpu: rdher_f0.2, dher_f0.2), which is mostly
 # this machine's day-to-day drift (the moving-goal sweeps below, vmapped, ran at that pace too);
-# rdher_plain's seed 0 took 60 min, and RDHER sweeps have since become 1.38x faster per epoch
-# (docs/design.md: no per-run cond under vmap; DHER's merge by one prefix sum). The
+# rdher_plain's seed 0 took 60 min; since then a sweep's delayed actor step stays a cond under
+# vmap (1.24x faster epochs, docs/design.md) and DHER's merge takes one prefix sum (RDHER's
+# epochs a further 1.38x). The
 # committed reduced set is HER against RDHER at the paper's pair (--algos her rdher); the other
 # three algorithms are about 2 hours each and the ablation's six weighted settings about 10 hours,
 # and every sweep resumes where it stopped, so they can be finished over several sittings.
