@@ -108,7 +108,7 @@ def cell_keys(x: jax.Array, tol: jax.Array) -> jax.Array:
 
 def cumsum(x: jax.Array) -> jax.Array:
     """Inclusive prefix sum of an int32 vector as a parallel scan. On XLA:CPU ``jnp.cumsum``
-    of the index's million entries takes about 4x as long (16 against 4 ms)."""
+    of the index's million entries takes 2-4x as long (``experiments/results/bench_relabel.md``)."""
     return jax.lax.associative_scan(jnp.add, x)
 
 
