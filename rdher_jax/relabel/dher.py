@@ -127,8 +127,9 @@ def merge(keys: jax.Array, idx: jax.Array, drop: jax.Array, new_keys: jax.Array,
     lo = jnp.searchsorted(keys, new_keys, side="right", method="scan").astype(jnp.int32)
     c = cumsum((~drop).astype(jnp.int32) + jnp.zeros(P, jnp.int32).at[lo].add(1, mode="drop"))
     pos_old = jnp.where(drop, P, c - 1)
-    # The kept entries before lo[j]: c counts them and the new keys with lo < lo[j].
-    earlier = jnp.sum(lo[None, :] < lo[:, None], axis=1, dtype=jnp.int32)
+    # The kept entries before lo[j]: c counts them and the new keys with lo < lo[j] (lo is
+    # sorted, as the new keys are: a search, not an n x n compare; n is 51 per env).
+    earlier = jnp.searchsorted(lo, lo, side="left", method="scan").astype(jnp.int32)
     kept_before = jnp.where(lo > 0, c[jnp.maximum(lo - 1, 0)] - earlier, 0)
     pos_new = kept_before + jnp.arange(n, dtype=jnp.int32)
     # Every kept entry and every new one lands on a distinct position of [0, P); dropped ones
