@@ -716,6 +716,60 @@ def compare_markdown(paths: Sequence[Path]) -> str:
     return "\n".join(out) + "\n"
 
 
+def cost_rows(results: Path) -> list[tuple[str, str, int, int, float, str]]:
+    """(experiment, task, sweeps, runs, core-hours, processors) per ``<kind>/<profile>/<task>``
+    of what ran for it: each sweep once (the settings of one vmapped sweep share its wall clock),
+    a borrowed setting (``borrowed_from``: read from another experiment) not at all, as its
+    sweep is counted where it ran."""
+    rows = []
+    for kind in KINDS:
+        kdir = Path(results) / kind
+        if not kdir.is_dir():
+            continue
+        for pdir in sorted(p for p in kdir.iterdir() if p.is_dir()):
+            for task, settings in _by_task([s for s in load(pdir) if s.runs]).items():
+                sweeps: dict[str, SettingData] = {}
+                for s in settings:
+                    if not s.meta.get("borrowed_from"):
+                        sweeps.setdefault(str(s.meta.get("sweep", {}).get("name", s.name)), s)
+                if not sweeps:
+                    continue
+                hours = sum(float(s.meta.get("wall_clock_s") or 0.0) for s in sweeps.values())
+                runs = sum(int(s.meta.get("sweep", {}).get("runs") or len(s.runs))
+                           for s in sweeps.values())
+                cpus = sorted({s.meta.get("hardware", {}).get("processor") or "?"
+                               for s in sweeps.values()})
+                rows.append((f"{kind}/{pdir.name}", task, len(sweeps), runs, hours / 3600,
+                             ", ".join(cpus)))
+    return rows
+
+
+def cost_markdown(results: Path) -> str | None:
+    """``cost.md``: the core-hours each experiment's committed runs took, and their total."""
+    rows = cost_rows(results)
+    if not rows:
+        return None
+    out = ["# Compute spent on the committed results", "",
+           "Hours of one CPU core per experiment and task: the sum of the wall clocks of the "
+           "sweeps (and one-seed pieces) that made the committed CSVs, each of which ran pinned "
+           "to one core (`run_info.json`, `wall_clock_s`: from the sweep's start, compilation "
+           "included, summed over resumes; process start, env build and the best-policy retest "
+           "not). A setting read from another experiment (`borrowed_from`) is counted once, "
+           "where it ran. Written by `python experiments/report.py`.", ""]
+    body = [[e, t, str(n), str(r), f"{h:.2f}", c] for e, t, n, r, h, c in rows]
+    subtotal: dict[str, list[float]] = {}
+    for e, _, _, r, h, _ in rows:
+        acc = subtotal.setdefault(e, [0, 0.0])
+        acc[0] += r
+        acc[1] += h
+    body += [[f"**{e}**", "all", "", str(int(r)), f"**{h:.2f}**", ""]
+             for e, (r, h) in subtotal.items()]
+    body.append(["**total**", "", "", str(sum(r for _, _, _, r, _, _ in rows)),
+                 f"**{sum(h for *_, h, _ in rows):.2f}**", ""])
+    out += _md_table(["experiment", "task", "sweeps", "runs", "core-hours", "CPU"], body)
+    return "\n".join(out) + "\n"
+
+
 def write_reports(results: Path, only: set[tuple[str, str]] | None = None) -> list[Path]:
     """Write the tables and figures of every ``<kind>/<profile>`` under ``results`` (or only
     those in ``only``); returns the files written."""
@@ -739,6 +793,10 @@ def write_reports(results: Path, only: set[tuple[str, str]] | None = None) -> li
                                 ("env_steps", "success_env_steps.png")):
                 figure(kind, pdir.name, data, x_col, pdir / name)
                 written.append(pdir / name)
+    cost = cost_markdown(results)
+    if cost is not None and written:
+        write_text_atomic(Path(results) / "cost.md", cost)
+        written.append(Path(results) / "cost.md")
     return written
 
 

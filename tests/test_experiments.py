@@ -352,6 +352,28 @@ def test_report_files(results):
     assert "vanilla HER" in abl and "`algo=her`" in abl
 
 
+def test_cost_counts_each_sweep_once_and_borrowed_settings_not_at_all(results, tmp_path):
+    copy = tmp_path / "results"
+    shutil.copytree(results["out"], copy)
+    info = {s: json.loads((copy / "ablation/tiny/FetchReach" / s / "run_info.json").read_text())
+            for s in ("her", "rdher_lr1_lh2", "rdher_lr2_lh1")}
+    # The λ pairs are one vmapped sweep: its wall clock once, its runs once.
+    assert info["rdher_lr1_lh2"]["sweep"]["name"] == info["rdher_lr2_lh1"]["sweep"]["name"]
+    pairs = info["rdher_lr1_lh2"]
+    row = {(e, t): (n, r, h) for e, t, n, r, h, _ in report.cost_rows(copy)}
+    want = (info["her"]["wall_clock_s"] + pairs["wall_clock_s"]) / 3600
+    assert row[("ablation/tiny", "FetchReach")][:2] == (2, 2 + pairs["sweep"]["runs"])
+    assert row[("ablation/tiny", "FetchReach")][2] == pytest.approx(want)
+    # HER read from the benchmark: counted there, not here.
+    her = copy / "ablation/tiny/FetchReach/her/run_info.json"
+    her.write_text(json.dumps({**info["her"], "borrowed_from": {"kind": "benchmark"}}))
+    row = {(e, t): (n, r, h) for e, t, n, r, h, _ in report.cost_rows(copy)}
+    assert row[("ablation/tiny", "FetchReach")][2] == pytest.approx(pairs["wall_clock_s"] / 3600)
+    md = report.cost_markdown(copy)
+    total = sum(h for *_, h, _ in report.cost_rows(copy))
+    assert "| **total** |  |  | " in md and f"**{total:.2f}**" in md
+
+
 def test_report_regenerates_byte_identical_from_the_results_alone(results, tmp_path):
     # A copy of the results, far from the sweep directories: the report needs nothing else.
     copy = tmp_path / "results"
@@ -360,7 +382,7 @@ def test_report_regenerates_byte_identical_from_the_results_alone(results, tmp_p
     proc = subprocess.run([sys.executable, str(EXP / "report.py"), "--results", str(copy)],
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
-    assert proc.stdout.count("wrote ") == 8
+    assert proc.stdout.count("wrote ") == 9  # 2 x (2 tables, 2 figures), cost.md
     after = {p.relative_to(copy): p.read_bytes() for p in copy.rglob("*") if p.is_file()}
     assert after.keys() == before.keys()
     for k in after:  # tables and inputs; the PNGs too, as matplotlib writes them without dates
@@ -382,6 +404,7 @@ def test_committed_tables_regenerate_from_the_committed_csvs(tmp_path):
             shutil.copytree(src / kind, copy / kind,
                             ignore=shutil.ignore_patterns("summary.*", "*.png"))
     report.write_reports(copy)
+    tables.append(Path("cost.md"))
     for rel in tables:
         assert (copy / rel).read_bytes() == (src / rel).read_bytes(), \
             f"{rel} is stale: run python experiments/report.py"
