@@ -20,7 +20,8 @@ experiment). The profile's name, doc and the task's budget are written into ever
   another on the second core, is about 42 min (about 50 s per epoch): use ``--first-seed`` to
   split a setting that does not fit in a sitting. FetchPush HER as five one-seed pieces on the
   AMD EPYC: 22 min 13 s per run; its RDHER as one 5-seed sweep there: 28 min 16 s per run
-  (vmapping saves nothing with this learner on a CPU).
+  (vmapping saves nothing with this learner on a CPU). Every task and algorithm's time per run
+  is in RESULTS.md's Table 3, and what each experiment has cost in ``results/cost.md``.
   The paper does not state its epoch counts; 50 is ``n_epochs``'s default in the code it builds on
   (openai/baselines ``her/experiment/train.py``, mengf1/DHER ``train_dyreach.py``) and fits
   Table 3's wall clock (HER on Push: 3 h 30 min on one CPU core, i.e. 4.2 min per 50-cycle
@@ -144,10 +145,10 @@ PROFILES: dict[str, Profile] = {
                     "FetchReachMoving": REACH_MOVING_CPU, "FetchPushMoving": PUSH_MOVING_CPU},
                    ("FetchReach",)),
     "paper": Profile(
-        "the paper's budget, which a CPU can run (measured per run on one core of a 2-core "
-        "CPU, 5 seeds vmapped: Reach 2.6-3.4 min, Slide and PickAndPlace HER 21 min; one "
-        "FetchPush run 12-15 min): Table 1's settings, 50 epochs (Reach 10 cycles each, "
-        "others 50), 5 seeds, every task",
+        "the paper's budget, which a CPU can run (one run on one core of a 2-core CPU beside "
+        "another, by the algorithm: Reach 2.6-5.2 min, Push 21-33, Slide 20-34, PickAndPlace "
+        "19-27; each in RESULTS.md, Table 3, and cost.md): Table 1's settings, 50 epochs "
+        "(Reach 10 cycles each, others 50), 5 seeds, every task",
         {**{t: Budget(5, {"epochs": 50, "n_cycles": TASK_TABLE[t].n_cycles, **PAPER_LEARNER},
                       "the paper's settings (epochs: see profiles.py)")
             for t in TASKS},
