@@ -642,8 +642,9 @@ def figure(kind: str, profile: str, data: Sequence[SettingData], x_col: str, pat
             ax.fill_between(x, q1, q3, color=color, alpha=0.15, lw=0)
             paper = paper_best(task, s.meta.get("algo")) if kind == "benchmark" else None
             if paper is not None:  # the paper's Table 2 (its best policy), at the curve's end
+                # Above the legend (zorder 5): no legend placement may hide the paper's value.
                 ax.plot([x[-1]], [paper / 100], color=color, marker="*", ms=10, ls="none",
-                        mec="black", mew=0.5, clip_on=False)
+                        mec="black", mew=0.5, clip_on=False, zorder=6)
                 marked = True
         if kind == "benchmark" and marked:
             ax.plot([], [], color="grey", marker="*", ms=10, ls="none", mec="black", mew=0.5,
@@ -654,7 +655,7 @@ def figure(kind: str, profile: str, data: Sequence[SettingData], x_col: str, pat
         ax.set_ylabel(f"test success (median, IQR; {n} seeds)")
         ax.set_ylim(-0.02, 1.02)
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, loc="lower right")
+        ax.legend(fontsize=7, loc="best")  # where it covers the fewest curve and star points
     for ax in list(axes.flat)[len(tasks):]:
         ax.set_visible(False)
     fig.suptitle(f"{TITLES[kind].split(' (')[0]}, profile {profile}")
