@@ -136,8 +136,22 @@ def results(tmp_path_factory):
     write_setting(root, "ablation", "rdher_lr4_lh0.5", RUNS["rdher"], "rdher", "RDHER 4/0.5", 6,
                   (4.0, 0.5))
     written = report.write_reports(root)
-    assert len(written) == 8
+    assert len(written) == 9  # per kind: 2 tables and 2 figures; and cost.md
     return root
+
+
+def test_cost_sums_the_hand_written_wall_clocks(results):
+    # Every setting here is its own sweep, of its runs at a known wall clock (write_setting).
+    rows = {(e, t): (n, r, h) for e, t, n, r, h, _ in report.cost_rows(results)}
+    metas = {kind: [json.loads(p.read_text()) for p in (results / kind).rglob("run_info.json")]
+             for kind in ("ablation", "benchmark")}
+    for kind, ms in metas.items():
+        n, runs, hours = rows[(f"{kind}/hand", "FetchPush")]
+        assert (n, runs) == (len(ms), sum(m["sweep"]["runs"] for m in ms))
+        assert hours == pytest.approx(sum(m["wall_clock_s"] for m in ms) / 3600)
+    md = (results / "cost.md").read_text(encoding="utf-8")
+    total = sum(h for _, (_, _, h) in rows.items())
+    assert md.rstrip().endswith(f"| **{total:.2f}** |  |")
 
 
 def read_csv(path):
