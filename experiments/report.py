@@ -717,37 +717,49 @@ def compare_markdown(paths: Sequence[Path]) -> str:
     return "\n".join(out) + "\n"
 
 
-def cost_rows(results: Path) -> list[tuple[str, str, int, int, float, str]]:
-    """(experiment, task, sweeps, runs, core-hours, processors) per ``<kind>/<profile>/<task>``
-    of what ran for it: each sweep once (the settings of one vmapped sweep share its wall clock),
-    a borrowed setting (``borrowed_from``: read from another experiment) not at all, as its
-    sweep is counted where it ran."""
-    rows = []
+def profiles_data(results: Path) -> list[tuple[str, Path, list[SettingData]]]:
+    """``(kind, profile directory, its settings with runs)`` for every ``<kind>/<profile>``
+    under ``results`` that holds any, in a fixed order."""
+    out = []
     for kind in KINDS:
         kdir = Path(results) / kind
         if not kdir.is_dir():
             continue
         for pdir in sorted(p for p in kdir.iterdir() if p.is_dir()):
-            for task, settings in _by_task([s for s in load(pdir) if s.runs]).items():
-                sweeps: dict[str, SettingData] = {}
-                for s in settings:
-                    if not s.meta.get("borrowed_from"):
-                        sweeps.setdefault(str(s.meta.get("sweep", {}).get("name", s.name)), s)
-                if not sweeps:
-                    continue
-                hours = sum(float(s.meta.get("wall_clock_s") or 0.0) for s in sweeps.values())
-                runs = sum(int(s.meta.get("sweep", {}).get("runs") or len(s.runs))
-                           for s in sweeps.values())
-                cpus = sorted({s.meta.get("hardware", {}).get("processor") or "?"
-                               for s in sweeps.values()})
-                rows.append((f"{kind}/{pdir.name}", task, len(sweeps), runs, hours / 3600,
-                             ", ".join(cpus)))
+            data = [s for s in load(pdir) if s.runs]
+            if data:
+                out.append((kind, pdir, data))
+    return out
+
+
+def cost_rows(profiles: Sequence[tuple[str, Path, list[SettingData]]]
+              ) -> list[tuple[str, str, int, int, float, str]]:
+    """(experiment, task, sweeps, runs, core-hours, processors) per ``<kind>/<profile>/<task>``
+    of ``profiles`` (:func:`profiles_data`), of what ran for it: each sweep once (the settings of
+    one vmapped sweep share its wall clock), a borrowed setting (``borrowed_from``: read from
+    another experiment) not at all, as its sweep is counted where it ran."""
+    rows = []
+    for kind, pdir, data in profiles:
+        for task, settings in _by_task(data).items():
+            sweeps: dict[str, SettingData] = {}
+            for s in settings:
+                if not s.meta.get("borrowed_from"):
+                    sweeps.setdefault(str(s.meta.get("sweep", {}).get("name", s.name)), s)
+            if not sweeps:
+                continue
+            hours = sum(float(s.meta.get("wall_clock_s") or 0.0) for s in sweeps.values())
+            runs = sum(int(s.meta.get("sweep", {}).get("runs") or len(s.runs))
+                       for s in sweeps.values())
+            cpus = sorted({s.meta.get("hardware", {}).get("processor") or "?"
+                           for s in sweeps.values()})
+            rows.append((f"{kind}/{pdir.name}", task, len(sweeps), runs, hours / 3600,
+                         ", ".join(cpus)))
     return rows
 
 
-def cost_markdown(results: Path) -> str | None:
+def cost_markdown(profiles: Sequence[tuple[str, Path, list[SettingData]]]) -> str | None:
     """``cost.md``: the core-hours each experiment's committed runs took, and their total."""
-    rows = cost_rows(results)
+    rows = cost_rows(profiles)
     if not rows:
         return None
     out = ["# Compute spent on the committed results", "",
@@ -758,13 +770,10 @@ def cost_markdown(results: Path) -> str | None:
            "not). A setting read from another experiment (`borrowed_from`) is counted once, "
            "where it ran. Written by `python experiments/report.py`.", ""]
     body = [[e, t, str(n), str(r), f"{h:.2f}", c] for e, t, n, r, h, c in rows]
-    subtotal: dict[str, list[float]] = {}
-    for e, _, _, r, h, _ in rows:
-        acc = subtotal.setdefault(e, [0, 0.0])
-        acc[0] += r
-        acc[1] += h
-    body += [[f"**{e}**", "all", "", str(int(r)), f"**{h:.2f}**", ""]
-             for e, (r, h) in subtotal.items()]
+    for e, grouped in itertools.groupby(rows, key=lambda row: row[0]):  # rows come by experiment
+        part = list(grouped)
+        body.append([f"**{e}**", "all", "", str(sum(g[3] for g in part)),
+                     f"**{sum(g[4] for g in part):.2f}**", ""])
     body.append(["**total**", "", "", str(sum(r for _, _, _, r, _, _ in rows)),
                  f"**{sum(h for *_, h, _ in rows):.2f}**", ""])
     out += _md_table(["experiment", "task", "sweeps", "runs", "core-hours", "CPU"], body)
@@ -775,26 +784,21 @@ def write_reports(results: Path, only: set[tuple[str, str]] | None = None) -> li
     """Write the tables and figures of every ``<kind>/<profile>`` under ``results`` (or only
     those in ``only``); returns the files written."""
     written = []
-    for kind in KINDS:
-        kdir = Path(results) / kind
-        if not kdir.is_dir():
+    profiles = profiles_data(results)
+    for kind, pdir, data in profiles:
+        if only is not None and (kind, pdir.name) not in only:
             continue
-        for pdir in sorted(p for p in kdir.iterdir() if p.is_dir()):
-            if only is not None and (kind, pdir.name) not in only:
-                continue
-            data = [s for s in load(pdir) if s.runs]
-            if not data:
-                continue
-            md = pdir / "summary.md"
-            write_text_atomic(md, summary_markdown(kind, pdir.name, data))
-            sc = pdir / "summary.csv"
-            write_text_atomic(sc, summary_csv(kind, data))
-            written += [md, sc]
-            for x_col, name in (("epoch", "success_epochs.png"),
-                                ("env_steps", "success_env_steps.png")):
-                figure(kind, pdir.name, data, x_col, pdir / name)
-                written.append(pdir / name)
-    cost = cost_markdown(results)
+        md = pdir / "summary.md"
+        write_text_atomic(md, summary_markdown(kind, pdir.name, data))
+        sc = pdir / "summary.csv"
+        write_text_atomic(sc, summary_csv(kind, data))
+        written += [md, sc]
+        for x_col, name in (("epoch", "success_epochs.png"),
+                            ("env_steps", "success_env_steps.png")):
+            figure(kind, pdir.name, data, x_col, pdir / name)
+            written.append(pdir / name)
+    # Over every profile, not only those written now: the total is the whole results tree's.
+    cost = cost_markdown(profiles)
     if cost is not None and written:
         write_text_atomic(Path(results) / "cost.md", cost)
         written.append(Path(results) / "cost.md")

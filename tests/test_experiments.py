@@ -360,17 +360,17 @@ def test_cost_counts_each_sweep_once_and_borrowed_settings_not_at_all(results, t
     # The λ pairs are one vmapped sweep: its wall clock once, its runs once.
     assert info["rdher_lr1_lh2"]["sweep"]["name"] == info["rdher_lr2_lh1"]["sweep"]["name"]
     pairs = info["rdher_lr1_lh2"]
-    row = {(e, t): (n, r, h) for e, t, n, r, h, _ in report.cost_rows(copy)}
+    row = {(e, t): (n, r, h) for e, t, n, r, h, _ in report.cost_rows(report.profiles_data(copy))}
     want = (info["her"]["wall_clock_s"] + pairs["wall_clock_s"]) / 3600
     assert row[("ablation/tiny", "FetchReach")][:2] == (2, 2 + pairs["sweep"]["runs"])
     assert row[("ablation/tiny", "FetchReach")][2] == pytest.approx(want)
     # HER read from the benchmark: counted there, not here.
     her = copy / "ablation/tiny/FetchReach/her/run_info.json"
     her.write_text(json.dumps({**info["her"], "borrowed_from": {"kind": "benchmark"}}))
-    row = {(e, t): (n, r, h) for e, t, n, r, h, _ in report.cost_rows(copy)}
+    row = {(e, t): (n, r, h) for e, t, n, r, h, _ in report.cost_rows(report.profiles_data(copy))}
     assert row[("ablation/tiny", "FetchReach")][2] == pytest.approx(pairs["wall_clock_s"] / 3600)
-    md = report.cost_markdown(copy)
-    total = sum(h for *_, h, _ in report.cost_rows(copy))
+    md = report.cost_markdown(report.profiles_data(copy))
+    total = sum(h for *_, h, _ in report.cost_rows(report.profiles_data(copy)))
     assert "| **total** |  |  | " in md and f"**{total:.2f}**" in md
 
 

@@ -491,5 +491,14 @@ def test_merge_is_not_quadratic_in_the_new_keys():
     args = (jax.ShapeDtypeStruct((P,), jnp.int32), jax.ShapeDtypeStruct((P,), jnp.int32),
             jax.ShapeDtypeStruct((P,), jnp.bool_), jax.ShapeDtypeStruct((n,), jnp.int32),
             jax.ShapeDtypeStruct((n,), jnp.int32))
-    eqns = jax.make_jaxpr(dher.merge)(*args).jaxpr.eqns
-    assert max(int(np.prod(v.aval.shape)) for e in eqns for v in e.outvars) < n * n
+
+    def sizes(jaxpr):  # every intermediate, those of nested programs (pjit, scan, ...) too
+        for e in jaxpr.eqns:
+            yield from (int(np.prod(v.aval.shape)) for v in e.outvars)
+            for val in e.params.values():
+                for x in val if isinstance(val, (tuple, list)) else (val,):
+                    inner = getattr(x, "jaxpr", x)
+                    if hasattr(inner, "eqns"):
+                        yield from sizes(inner)
+
+    assert max(sizes(jax.make_jaxpr(dher.merge)(*args).jaxpr)) < n * n

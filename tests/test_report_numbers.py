@@ -142,7 +142,8 @@ def results(tmp_path_factory):
 
 def test_cost_sums_the_hand_written_wall_clocks(results):
     # Every setting here is its own sweep, of its runs at a known wall clock (write_setting).
-    rows = {(e, t): (n, r, h) for e, t, n, r, h, _ in report.cost_rows(results)}
+    rows = {(e, t): (n, r, h)
+            for e, t, n, r, h, _ in report.cost_rows(report.profiles_data(results))}
     metas = {kind: [json.loads(p.read_text()) for p in (results / kind).rglob("run_info.json")]
              for kind in ("ablation", "benchmark")}
     for kind, ms in metas.items():
