@@ -241,7 +241,7 @@ def paired(xs: Mapping[int, float], ys: Mapping[int, float]) -> tuple[float, flo
 def vs_cell(diff: float, p: float) -> str:
     if not math.isfinite(diff):
         return "-"
-    d = f"{diff * 100:+.1f}"
+    d = f"{round(diff * 100, 1) + 0.0:+.1f}"  # + 0.0: a tie prints +0.0, never -0.0
     return d if not math.isfinite(p) else f"{d} (p {p:.2g})"
 
 

@@ -570,6 +570,8 @@ def test_statistics():
     assert report.vs_cell(diff / 100, p) == "-3.5 (p 0.01)"
     assert math.isnan(report.welch([1, 1], [2, 2])[1]) and math.isnan(report.welch([1], [2, 3])[1])
     assert report.vs_cell(math.nan, math.nan) == "-"
+    # a tie whose float difference rounds from below zero is +0.0, not -0.0
+    assert report.vs_cell(0.3 - 0.1 - 0.2, 1.0) == "+0.0 (p 1)"
 
 
 def test_beyond_labels_name_each_tasks_own_paper_pair():
