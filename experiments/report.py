@@ -628,6 +628,7 @@ def figure(kind: str, profile: str, data: Sequence[SettingData], x_col: str, pat
     cmap = plt.get_cmap("tab10")
     for ax, task in zip(axes.flat, tasks, strict=False):
         marked = False
+        counts = {len(s.runs) for s in data if s.task == task and s.runs}
         for s in (s for s in data if s.task == task):
             x, med, q1, q3 = _curve(s, x_col)
             if not x:
@@ -637,6 +638,8 @@ def figure(kind: str, profile: str, data: Sequence[SettingData], x_col: str, pat
             label = s.meta.get("label", s.name)
             if kind == "benchmark" and s.meta.get("algo") in ("rdher", "archer"):
                 label += f" (λ {lam(s)})"
+            if len(counts) > 1:  # settings of one task with unequal seeds: each says its own
+                label += f", {len(s.runs)} seed{'s' * (len(s.runs) != 1)}"
             ax.plot(x, med, color=color, lw=1.6, marker="o", ms=2.5, label=label,
                     ls="--" if s.name == "her" and kind == "ablation" else "-")
             ax.fill_between(x, q1, q3, color=color, alpha=0.15, lw=0)
@@ -649,10 +652,10 @@ def figure(kind: str, profile: str, data: Sequence[SettingData], x_col: str, pat
         if kind == "benchmark" and marked:
             ax.plot([], [], color="grey", marker="*", ms=10, ls="none", mec="black", mew=0.5,
                     label="paper, Table 2 (best policy)")
-        n = max((len(s.runs) for s in data if s.task == task), default=0)
         ax.set_title(task)
         ax.set_xlabel("epoch" if x_col == "epoch" else "env steps per run")
-        ax.set_ylabel(f"test success (median, IQR; {n} seeds)")
+        seeds = "over seeds" if len(counts) != 1 else f"{(n := counts.pop())} seed{'s' * (n != 1)}"
+        ax.set_ylabel(f"test success (median, IQR; {seeds})")
         ax.set_ylim(-0.02, 1.02)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, loc="best")  # where it covers the fewest curve and star points
