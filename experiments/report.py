@@ -238,6 +238,11 @@ def paired(xs: Mapping[int, float], ys: Mapping[int, float]) -> tuple[float, flo
     return statistics.fmean(d), p, len(d)
 
 
+def n_seeds(n: int) -> str:
+    """'1 seed', '3 seeds'."""
+    return f"{n} seed{'s' * (n != 1)}"
+
+
 def vs_cell(diff: float, p: float) -> str:
     if not math.isfinite(diff):
         return "-"
@@ -470,7 +475,7 @@ def summary_markdown(kind: str, profile: str, data: Sequence[SettingData]) -> st
         if tested:
             n = policy_episodes(s)
             row.append("-" if not n else
-                       f"{pm(st['policy'])} ({n}; {len(per_seed(s)['policy'])} seeds)")
+                       f"{pm(st['policy'])} ({n}; {n_seeds(len(per_seed(s)['policy']))})")
         row += [pm(st["final"]), ci(st["final"]), pm(st["mean"])]
         vs = vs_her(s, data)
         row += ["-", "-"] if vs is None else [vs_cell(*vs["final"]), vs_cell(*vs["mean"])]
@@ -639,7 +644,7 @@ def figure(kind: str, profile: str, data: Sequence[SettingData], x_col: str, pat
             if kind == "benchmark" and s.meta.get("algo") in ("rdher", "archer"):
                 label += f" (λ {lam(s)})"
             if len(counts) > 1:  # settings of one task with unequal seeds: each says its own
-                label += f", {len(s.runs)} seed{'s' * (len(s.runs) != 1)}"
+                label += f", {n_seeds(len(s.runs))}"
             ax.plot(x, med, color=color, lw=1.6, marker="o", ms=2.5, label=label,
                     ls="--" if s.name == "her" and kind == "ablation" else "-")
             ax.fill_between(x, q1, q3, color=color, alpha=0.15, lw=0)
@@ -654,8 +659,8 @@ def figure(kind: str, profile: str, data: Sequence[SettingData], x_col: str, pat
                     label="paper, Table 2 (best policy)")
         ax.set_title(task)
         ax.set_xlabel("epoch" if x_col == "epoch" else "env steps per run")
-        seeds = "over seeds" if len(counts) != 1 else f"{(n := counts.pop())} seed{'s' * (n != 1)}"
-        ax.set_ylabel(f"test success (median, IQR; {seeds})")
+        ax.set_ylabel(f"test success (median, IQR; "
+                      f"{n_seeds(min(counts)) if len(counts) == 1 else 'over seeds'})")
         ax.set_ylim(-0.02, 1.02)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, loc="best")  # where it covers the fewest curve and star points

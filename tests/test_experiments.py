@@ -572,6 +572,7 @@ def test_statistics():
     assert report.vs_cell(math.nan, math.nan) == "-"
     # a tie whose float difference rounds from below zero is +0.0, not -0.0
     assert report.vs_cell(0.3 - 0.1 - 0.2, 1.0) == "+0.0 (p 1)"
+    assert (report.n_seeds(1), report.n_seeds(3)) == ("1 seed", "3 seeds")
 
 
 def test_beyond_labels_name_each_tasks_own_paper_pair():
