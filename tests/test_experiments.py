@@ -573,6 +573,17 @@ def test_statistics():
     # a tie whose float difference rounds from below zero is +0.0, not -0.0
     assert report.vs_cell(0.3 - 0.1 - 0.2, 1.0) == "+0.0 (p 1)"
     assert (report.n_seeds(1), report.n_seeds(3)) == ("1 seed", "3 seeds")
+    # The same rates reached by two summation orders of float32 successes are one rate: a
+    # paired test of equal finals has no variance (p nan), not a p of the rounding noise.
+    f32 = [float(np.float32(v)) for v in (0.1, 0.3, 0.2)]
+    same = {0: 0.0, 1: 0.1, 2: sum(f32) / 3}
+    other = {0: 0.0, 1: float(np.float32(0.1)), 2: float(np.float32(0.2))}
+    assert same[2] != other[2]
+    diff, p, n = report.paired(same, other)
+    assert n == 3 and math.isnan(p) and report.vs_cell(diff, p) == "+0.0"
+    assert math.isnan(report.welch([0.2, 0.2], [f32[2], sum(f32) / 3])[1])
+    diff, p, _ = report.paired({0: 0.1, 1: 0.2, 2: 0.4}, {0: 0.1, 1: 0.1, 2: 0.2})
+    assert math.isclose(diff, 0.1) and 0.1 < p < 0.5  # a real difference still tests
 
 
 def test_beyond_labels_name_each_tasks_own_paper_pair():
