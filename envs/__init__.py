@@ -11,8 +11,8 @@ import dataclasses
 
 from rdher_jax._quiet import quiet_imports
 
-# Before mjbatch imports mujoco.mjx and the scenes import gymnasium_robotics. Not at the
-# package's import: rendering must choose MUJOCO_GL before mujoco is first imported.
+# Before the scenes import gymnasium_robotics. Not at the package's import: rendering must
+# choose MUJOCO_GL before mujoco is first imported.
 quiet_imports()
 
 from .fetch import EPISODE_LENGTH, FetchEnv, State  # noqa: E402

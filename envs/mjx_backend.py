@@ -13,10 +13,14 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
-from mujoco import mjx
-from mujoco.mjx._src import support
 
-from .physics import MOCAP_QUAT_DELTA, N_SUBSTEPS, RAW_SIZE, RAW_SLICES, Setup
+from rdher_jax._quiet import quiet_mjx
+
+quiet_mjx()
+from mujoco import mjx  # noqa: E402
+from mujoco.mjx._src import support  # noqa: E402
+
+from .physics import MOCAP_QUAT_DELTA, N_SUBSTEPS, RAW_SIZE, RAW_SLICES, Setup  # noqa: E402
 
 
 class MjxBackend:

@@ -199,6 +199,9 @@ def zero_mesh_margins(spec: mujoco.MjSpec, task: str) -> None:
     friction, solref and solimp that MuJoCo's mixing rules give the dynamic contact.
     """
     del task
+    from rdher_jax._quiet import quiet_mjx
+
+    quiet_mjx()
     from mujoco.mjx._src import collision_driver  # the pair enumeration put_model checks
 
     mesh = mujoco.mjtGeom.mjGEOM_MESH

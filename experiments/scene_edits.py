@@ -556,6 +556,10 @@ def air_episode(rng: np.random.Generator) -> np.ndarray:
 
 def mjx_study(task: str = "FetchPush") -> dict:
     import jax
+
+    from rdher_jax._quiet import quiet_mjx
+
+    quiet_mjx()
     from mujoco import mjx
 
     jax.config.update("jax_enable_x64", True)

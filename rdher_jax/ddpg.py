@@ -16,14 +16,12 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from rdher_jax._quiet import quiet_imports
+from rdher_jax import _quiet
+from rdher_jax.config import TARGET_CLIPS  # the critic target's clip ranges
+from rdher_jax.networks import Actor, Critic
 
-quiet_imports()  # brax imports mujoco.mjx
-
-from brax.training.acme import running_statistics  # noqa: E402
-
-from rdher_jax.config import TARGET_CLIPS  # noqa: E402  (the critic target's clip ranges)
-from rdher_jax.networks import Actor, Critic  # noqa: E402
+# brax's normaliser, without brax/__init__.py's import of MJX (rdher_jax._quiet).
+running_statistics = _quiet.running_statistics()
 
 Params = Any
 

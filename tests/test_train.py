@@ -352,9 +352,34 @@ def test_target_every_moves_targets_inside_the_cycle(tmp_path):
 
 def test_no_third_party_import_chatter():
     """MJX's Warp-absence notices and gymnasium-robotics' Adroit notice are dropped at their
-    source; anything else those imports print would still show."""
+    source (brax's and the MJX backend's import of MJX included); anything else those imports
+    print would still show."""
     code = ("import rdher_jax.train, rdher_jax.sweep, rdher_jax.evaluate, rdher_jax.envs, "
-            "rdher_jax.envs.native, gymnasium_robotics, brax; print('ok')")
+            "rdher_jax.envs.native, rdher_jax.ddpg, gymnasium_robotics, brax; brax.State; "
+            "import rdher_jax.envs.mjx_backend; print('ok')")
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr
     assert p.stdout == "ok\n" and p.stderr == "", (p.stdout, p.stderr)
+
+
+def test_native_training_never_imports_mjx(tmp_path):
+    """A run on the native backend uses brax's normaliser without brax/__init__.py's import of
+    MJX, trimesh and scipy (about a second of start-up); brax itself still loads in full, and
+    quietly, when its package attributes are read."""
+    code = (
+        "import atexit, runpy, sys\n"
+        "atexit.register(lambda: print('loaded', [m for m in ('mujoco.mjx', 'trimesh', 'scipy')"
+        " if m in sys.modules]))\n"
+        f"sys.argv = ['train', 'epochs=1', 'n_cycles=1', 'n_batches=2', 'run_dir={tmp_path}/r',"
+        " 'backend=mujoco', 'progress=false']\n"
+        "runpy.run_module('rdher_jax.train', run_name='__main__')\n"
+    )
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.splitlines()[-1] == "loaded []", p.stdout
+    code = ("import rdher_jax.ddpg, brax, sys; assert 'mujoco.mjx' not in sys.modules; "
+            "print(brax.State.__module__, 'mujoco.mjx' in sys.modules, "
+            "brax.training.acme.running_statistics is rdher_jax.ddpg.running_statistics)")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    assert p.stdout == "brax.base True True\n" and p.stderr == "", (p.stdout, p.stderr)
