@@ -76,14 +76,29 @@ class NativeBackend:
         self._qvel = slice(qv, qv + m.nv)
         if physics_call not in ("ffi", "callback"):
             raise ValueError(f"physics_call must be 'ffi' or 'callback', got {physics_call!r}")
-        # The same step and reset as XLA FFI calls (cacheable programs, bit-identical results);
-        # None: the pure_callback below (asked for, or the handlers could not be built).
-        from . import native_ffi
-
         # (The handlers are registered for XLA:CPU; where JAX's default device is an
         # accelerator the callback, which runs anywhere, stays.)
-        use_ffi = physics_call == "ffi" and jax.default_backend() == "cpu"
-        self.ffi_task = native_ffi.register(self) if use_ffi else None
+        self._use_ffi = physics_call == "ffi" and jax.default_backend() == "cpu"
+        self._ffi_task: int | None = None
+        self._ffi_resolved = False
+        self._ffi_lock = threading.Lock()
+
+    @property
+    def ffi_task(self) -> int | None:
+        """The task's id with the FFI handlers (cacheable programs, bit-identical results), or
+        None: the pure_callback (asked for, or the handlers could not be built). Resolved on
+        first use, when a program that steps the env is first traced, not when the env is
+        built: on a machine that never ran the project the handlers' C++ build (about 2.5 s,
+        started in the background by the CLIs) then overlaps building and tracing the
+        programs that do not step it."""
+        if not self._ffi_resolved:
+            with self._ffi_lock:
+                if not self._ffi_resolved:
+                    from . import native_ffi
+
+                    self._ffi_task = native_ffi.register(self) if self._use_ffi else None
+                    self._ffi_resolved = True
+        return self._ffi_task
 
     # ------------------------------------------------------------------ host side
     def _batch(self, n: int):
