@@ -350,6 +350,13 @@ def test_target_every_moves_targets_inside_the_cycle(tmp_path):
     assert not same(end.target_critic_params, end.critic_params)
 
 
+def _python(code: str) -> subprocess.CompletedProcess:
+    """``python -c code`` in a fresh process; it must succeed."""
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    return p
+
+
 def test_no_third_party_import_chatter():
     """MJX's Warp-absence notices and gymnasium-robotics' Adroit notice are dropped at their
     source (brax's and the MJX backend's import of MJX included); anything else those imports
@@ -357,8 +364,7 @@ def test_no_third_party_import_chatter():
     code = ("import rdher_jax.train, rdher_jax.sweep, rdher_jax.evaluate, rdher_jax.envs, "
             "rdher_jax.envs.native, rdher_jax.ddpg, gymnasium_robotics, brax; brax.State; "
             "import rdher_jax.envs.mjx_backend; print('ok')")
-    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
-    assert p.returncode == 0, p.stderr
+    p = _python(code)
     assert p.stdout == "ok\n" and p.stderr == "", (p.stdout, p.stderr)
 
 
@@ -374,12 +380,10 @@ def test_native_training_never_imports_mjx(tmp_path):
         " 'backend=mujoco', 'progress=false']\n"
         "runpy.run_module('rdher_jax.train', run_name='__main__')\n"
     )
-    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
-    assert p.returncode == 0, p.stderr
+    p = _python(code)
     assert p.stdout.splitlines()[-1] == "loaded []", p.stdout
     code = ("import rdher_jax.ddpg, brax, sys; assert 'mujoco.mjx' not in sys.modules; "
             "print(brax.State.__module__, 'mujoco.mjx' in sys.modules, "
             "brax.training.acme.running_statistics is rdher_jax.ddpg.running_statistics)")
-    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
-    assert p.returncode == 0, p.stderr
+    p = _python(code)
     assert p.stdout == "brax.base True True\n" and p.stderr == "", (p.stdout, p.stderr)
