@@ -9,7 +9,7 @@ its package; any other output of those imports still shows.
 
 The learner uses one module of brax, its running-statistics normaliser, which needs only jax and
 flax; but ``import brax`` runs ``brax/__init__.py``, which imports ``brax.base`` and so MJX,
-trimesh and scipy: about a second of every command's start-up on a 2-core CPU, for a physics
+trimesh and scipy: about 0.5 s of every command's start-up on an idle 2-core CPU, for a physics
 backend the native path never runs (``docs/performance.md``, 'Start-up'). ``running_statistics()``
 imports the normaliser with ``brax/__init__.py`` deferred until something reads an attribute of
 the package itself (``brax.State``, ``brax.base``, ...): then it runs in full, as a plain

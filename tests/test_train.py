@@ -370,7 +370,7 @@ def test_no_third_party_import_chatter():
 
 def test_native_training_never_imports_mjx(tmp_path):
     """A run on the native backend uses brax's normaliser without brax/__init__.py's import of
-    MJX, trimesh and scipy (about a second of start-up); brax itself still loads in full, and
+    MJX, trimesh and scipy (about 0.5 s of start-up); brax itself still loads in full, and
     quietly, when its package attributes are read."""
     code = (
         "import atexit, runpy, sys\n"
