@@ -27,16 +27,23 @@ from pathlib import Path
 THRESHOLDS = (0.5, 0.9)
 
 
+# As the trainer's stop_success (rdher_jax.driver.reached_stop): a success rate is a float32
+# ratio of counts, and 7/10 is a hair below 0.7, so (0.7, 1.0, 1.0) would miss a mean of 0.9.
+TOLERANCE = 1e-6
+
+
 def first_hit(rows: list[dict], threshold: float, window: int) -> dict | None:
-    """The first epoch at or above ``threshold``, alone and as a trailing mean of ``window``."""
+    """The first epoch at or above ``threshold``, alone and as a trailing mean of ``window``
+    (to within :data:`TOLERANCE`)."""
     out: dict = {}
     succ = [float(r["test_success"]) for r in rows]
+    level = threshold - TOLERANCE
     for i, r in enumerate(rows):
-        if "single" not in out and succ[i] >= threshold:
+        if "single" not in out and succ[i] >= level:
             out["single"] = {"epoch": int(r["epoch"]), "env_steps": int(r["env_steps"]),
                              "wall_s": float(r["wall_time"])}
         if "window" not in out and i + 1 >= window and \
-                statistics.mean(succ[i + 1 - window: i + 1]) >= threshold:
+                statistics.mean(succ[i + 1 - window: i + 1]) >= level:
             out["window"] = {"epoch": int(r["epoch"]), "env_steps": int(r["env_steps"]),
                              "wall_s": float(r["wall_time"])}
     return out or None
@@ -114,6 +121,64 @@ def summary(out: Path, window: int) -> str:
     return text
 
 
+def write_tables(out: Path, name: str, data: dict, window: int) -> str:
+    """``<name>.md`` and ``<name>.json`` from a setting's data (its settings, seeds, note,
+    machine limits and per-seed results); returns the markdown."""
+    results, limits = data["results"], data.get("machine_limits")
+    lines = [
+        f"# Learning speed: {name}",
+        "",
+        f"`python experiments/bench_learning.py --name {name} --seeds "
+        f"{' '.join(map(str, data['seeds']))} -- {' '.join(data['settings'])}` on "
+        f"{platform.machine()} ({platform.processor() or 'CPU'}); wall clock from the start "
+        "of training (the first epoch's compilation included, imports and env build not; "
+        "'start-up': from starting the process to that clock's start, for runs this script "
+        "started fresh). "
+        f"'mean of {window}': the first epoch whose trailing mean of {window} epochs "
+        "reaches the threshold." + (f" {data['note']}" if data.get("note") else ""),
+        "",
+        "| seed | epochs | env steps | minutes | best | "
+        + " | ".join(f"to {t} | to {t}, mean of {window}" for t in THRESHOLDS)
+        + f" | start-up (s) | to {THRESHOLDS[-1]}, mean of {window}, from process start |",
+        "|---" * (7 + 2 * len(THRESHOLDS)) + "|",
+    ]
+    for seed, r in results.items():
+        cells = []
+        for t in THRESHOLDS:
+            cells += [fmt(r["hits"][str(t)], "single"), fmt(r["hits"][str(t)], "window")]
+        up = r.get("startup_s")
+        last = (r["hits"][str(THRESHOLDS[-1])] or {}).get("window")
+        cells += ["-" if up is None else f"{up:.1f}",
+                  "-" if up is None or last is None
+                  else f"{(up + last['wall_s']) / 60:.1f} min"]
+        lines.append(f"| {seed} | {r['epochs']} | {r['env_steps']:,} | {r['wall_s'] / 60:.1f} | "
+                     f"{r['best']:.2f} | " + " | ".join(cells) + " |")
+    if limits is not None:
+        lines += ["", f"The machine's ceilings, measured just before the runs (`python "
+                  f"{limits['script']}`):", "", "```", limits["table"], "```"]
+    text = "\n".join(lines) + "\n"
+    (out / f"{name}.md").write_text(text)
+    (out / f"{name}.json").write_text(json.dumps(data, indent=1))
+    return text
+
+
+def retabulate(out: Path, window: int) -> list[str]:
+    """Recompute every setting's hits in ``out`` from the curves its JSON holds, and rewrite
+    its tables (after a change to how hits are found); returns the names that changed."""
+    changed = []
+    for path in sorted(out.glob("*.json")):
+        data = json.loads(path.read_text())
+        for r in data["results"].values():
+            rows = [{"epoch": i + 1, "env_steps": st, "wall_time": w, "test_success": sc}
+                    for i, (st, w, sc) in enumerate(r["curve"])]
+            r["hits"] = {str(t): first_hit(rows, t, window) for t in THRESHOLDS}
+        before = (out / f"{path.stem}.md").read_text(), path.read_text()
+        write_tables(out, path.stem, data, window)
+        if ((out / f"{path.stem}.md").read_text(), path.read_text()) != before:
+            changed.append(path.stem)
+    return changed
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--name", help="name of this setting (file names)")
@@ -123,6 +188,9 @@ def main() -> None:
     ap.add_argument("--window", type=int, default=3)
     ap.add_argument("--runs-dir", default="runs/bench_learning")
     ap.add_argument("--out", default="experiments/results/bench_learning")
+    ap.add_argument("--retabulate", action="store_true",
+                    help="recompute the hits of every setting in --out from the curves in its "
+                    "JSON and rewrite its tables (and summary.md), train nothing")
     ap.add_argument("--report-only", action="store_true",
                     help="tabulate the runs as they stand (e.g. stopped early), train nothing")
     ap.add_argument("--note", default="", help="a sentence on how the runs were made, kept in "
@@ -136,7 +204,9 @@ def main() -> None:
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    if args.summary:
+    if args.retabulate:
+        print("changed:", " ".join(retabulate(out, args.window)) or "nothing")
+    if args.summary or args.retabulate:
         print(summary(out, args.window))
         return
     if not args.name:
@@ -168,42 +238,9 @@ def main() -> None:
                       for r in rows],
         }
 
-    lines = [
-        f"# Learning speed: {args.name}",
-        "",
-        f"`python experiments/bench_learning.py --name {args.name} --seeds "
-        f"{' '.join(map(str, args.seeds))} -- {' '.join(args.settings)}` on "
-        f"{platform.machine()} ({platform.processor() or 'CPU'}); wall clock from the start "
-        "of training (the first epoch's compilation included, imports and env build not; "
-        "'start-up': from starting the process to that clock's start, for runs this script "
-        "started fresh). "
-        f"'mean of {args.window}': the first epoch whose trailing mean of {args.window} epochs "
-        "reaches the threshold." + (f" {args.note}" if args.note else ""),
-        "",
-        "| seed | epochs | env steps | minutes | best | "
-        + " | ".join(f"to {t} | to {t}, mean of {args.window}" for t in THRESHOLDS)
-        + f" | start-up (s) | to {THRESHOLDS[-1]}, mean of {args.window}, from process start |",
-        "|---" * (7 + 2 * len(THRESHOLDS)) + "|",
-    ]
-    for seed, r in results.items():
-        cells = []
-        for t in THRESHOLDS:
-            cells += [fmt(r["hits"][str(t)], "single"), fmt(r["hits"][str(t)], "window")]
-        up = r.get("startup_s")
-        last = (r["hits"][str(THRESHOLDS[-1])] or {}).get("window")
-        cells += ["-" if up is None else f"{up:.1f}",
-                  "-" if up is None or last is None
-                  else f"{(up + last['wall_s']) / 60:.1f} min"]
-        lines.append(f"| {seed} | {r['epochs']} | {r['env_steps']:,} | {r['wall_s'] / 60:.1f} | "
-                     f"{r['best']:.2f} | " + " | ".join(cells) + " |")
-    if limits is not None:
-        lines += ["", f"The machine's ceilings, measured just before the runs (`python "
-                  f"{limits['script']}`):", "", "```", limits["table"], "```"]
-    text = "\n".join(lines) + "\n"
-    (out / f"{args.name}.md").write_text(text)
-    (out / f"{args.name}.json").write_text(json.dumps(
-        {"settings": args.settings, "seeds": args.seeds, "note": args.note,
-         "machine_limits": limits, "results": results}, indent=1))
+    text = write_tables(out, args.name, {
+        "settings": args.settings, "seeds": args.seeds, "note": args.note,
+        "machine_limits": limits, "results": results}, args.window)
     print(text)
 
     import matplotlib

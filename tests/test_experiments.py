@@ -662,6 +662,35 @@ def test_bench_gpu_target_rule_and_bad_input(capsys):
     assert err.startswith("error: unknown stage 'nope'") and "\n" not in err
 
 
+def test_bench_learning_hits_agree_with_the_stop_rule(tmp_path):
+    """A success rate is a float32 ratio of counts: 7/10, 10/10, 10/10 average a hair under
+    0.9, and the trainer's stop_success (driver.reached_stop) counts it as 0.9; so does
+    bench_learning, and --retabulate rewrites a table whose hits were found without it."""
+    import bench_learning  # noqa: PLC0415
+
+    from rdher_jax.config import parse_args  # noqa: PLC0415
+    from rdher_jax.driver import reached_stop  # noqa: PLC0415
+
+    succ = [float(np.float32(k / 10)) for k in (2, 5, 7, 10, 10)]
+    assert sum(succ[2:]) / 3 < 0.9  # the trap itself
+    rows = [{"epoch": i + 1, "env_steps": 1000 * (i + 1), "wall_time": 10.0 * (i + 1),
+             "test_success": s} for i, s in enumerate(succ)]
+    assert bench_learning.first_hit(rows, 0.9, 3)["window"]["epoch"] == 5
+    cfg = parse_args(["stop_success=0.9", "stop_window=3"])
+    assert reached_stop(cfg, [succ], [0]) and not reached_stop(cfg, [succ[:4]], [0])
+    # a table written before: no window hit recorded; --retabulate finds it from the curve
+    data = {"settings": ["env=FetchPush"], "seeds": [0], "note": "",
+            "results": {"0": {"epochs": 5, "env_steps": 5000, "wall_s": 50.0, "best": 1.0,
+                              "hits": {"0.5": None, "0.9": None},
+                              "curve": [[r["env_steps"], r["wall_time"], r["test_success"]]
+                                        for r in rows]}}}
+    (tmp_path / "old.json").write_text(json.dumps(data))
+    (tmp_path / "old.md").write_text("")
+    assert bench_learning.retabulate(tmp_path, 3) == ["old"]
+    assert "| 5,000 steps, 0.8 min |" in (tmp_path / "old.md").read_text()
+    assert bench_learning.retabulate(tmp_path, 3) == []  # nothing left to change
+
+
 def test_floor_expected_best_epoch_matches_simulation():
     """floor.py's expected best of E epochs (E[max of E Binomial(n, p)] / n, from the CDF)
     against a direct simulation of never-learning runs."""
