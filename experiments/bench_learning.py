@@ -24,20 +24,19 @@ import sys
 import time
 from pathlib import Path
 
+from rdher_jax.config import SUCCESS_TOLERANCE
+
 THRESHOLDS = (0.5, 0.9)
 
 
-# As the trainer's stop_success (rdher_jax.driver.reached_stop): a success rate is a float32
-# ratio of counts, and 7/10 is a hair below 0.7, so (0.7, 1.0, 1.0) would miss a mean of 0.9.
-TOLERANCE = 1e-6
 
 
 def first_hit(rows: list[dict], threshold: float, window: int) -> dict | None:
     """The first epoch at or above ``threshold``, alone and as a trailing mean of ``window``
-    (to within :data:`TOLERANCE`)."""
+    (to within the trainer's stop_success tolerance: a float32 7/10 is a hair under 0.7)."""
     out: dict = {}
     succ = [float(r["test_success"]) for r in rows]
-    level = threshold - TOLERANCE
+    level = threshold - SUCCESS_TOLERANCE
     for i, r in enumerate(rows):
         if "single" not in out and succ[i] >= level:
             out["single"] = {"epoch": int(r["epoch"]), "env_steps": int(r["env_steps"]),

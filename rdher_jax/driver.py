@@ -54,6 +54,7 @@ from . import summary
 from .checkpoint import Checkpointer
 from .config import (
     RESUMABLE_KEYS,
+    SUCCESS_TOLERANCE,
     TRACED_KEYS,
     Config,
     ConfigError,
@@ -539,13 +540,13 @@ def is_checkpoint_epoch(cfg: Config, epoch: int) -> bool:
 def reached_stop(cfg: Config, recent: Sequence[Sequence[float]], live: Iterable[int]) -> bool:
     """Whether ``stop_success`` is met: every live run's last ``stop_window`` test successes
     (``recent[i]``, oldest first) are all there and average at least ``stop_success`` (to
-    within 1e-6: a success rate is a float32 ratio of counts, 9/10 a hair either side of 0.9)."""
+    within ``config.SUCCESS_TOLERANCE``)."""
     if cfg.stop_success is None:
         return False
     live = list(live)
     return bool(live) and all(
         len(recent[i]) >= cfg.stop_window
-        and float(np.mean(recent[i][-cfg.stop_window:])) >= cfg.stop_success - 1e-6
+        and float(np.mean(recent[i][-cfg.stop_window:])) >= cfg.stop_success - SUCCESS_TOLERANCE
         for i in live)
 
 
