@@ -36,7 +36,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from rdher_jax import driver
+from rdher_jax import executor
 from rdher_jax.config import parse_args, resolve
 
 HERE = Path(__file__).resolve().parent
@@ -45,7 +45,7 @@ HERE = Path(__file__).resolve().parent
 def cycle_fn(settings: list[str]):
     """A jitted cycle and a filled-in TrainState for the given ``key=value`` settings."""
     cfg = resolve(parse_args([*settings, "run_dir=/tmp/bench_cycle_unused", "progress=false"]))
-    _, trainer = driver.build(cfg)
+    _, trainer = executor.build(cfg)
     hp = trainer.hparams
     # Donated, as inside the trainer's epoch scan, where the state is carried in place: without
     # it every call would copy the whole replay buffer.
@@ -59,12 +59,12 @@ def cycle_fn(settings: list[str]):
 
 def epoch_fn(settings: list[str], n_cycles: int):
     """A single run's epoch (``n_cycles`` cycles, one test episode) as the trainer runs it,
-    compiled and warmed up: the jitted epoch, or driver.OverlapEpoch with overlap=true."""
+    compiled and warmed up: the jitted epoch, or executor.OverlapEpoch with overlap=true."""
     from rdher_jax.program import hparams_from_config
 
     cfg = resolve(parse_args([*settings, f"n_cycles={n_cycles}", "n_test_rollouts=1",
                               "run_dir=/tmp/bench_cycle_unused", "progress=false"]))
-    _, _, batch = driver.batch_for([cfg], vmapped=False)
+    _, _, batch = executor.executor_for([cfg], vmapped=False)
     hp = batch.put(jax.tree.map(lambda x: x[None], hparams_from_config(cfg)))
     ts = batch.init(batch.put(jax.random.PRNGKey(0)[None]), hp)
     for _ in range(2):
@@ -229,7 +229,7 @@ def main() -> None:
             f"**Overlap** (`overlap=true`): an epoch of {args.overlap_cycles} cycles and one test "
             "episode as the trainer runs it, per cycle, sequential against overlapped (the "
             "rollout on a second host device while the learner trains; "
-            "`rdher_jax.driver.OverlapEpoch`), timed in the same interleaved rounds.",
+            "`rdher_jax.executor.OverlapEpoch`), timed in the same interleaved rounds.",
             "",
             "| setting | sequential ms / cycle | overlap ms / cycle | speed-up | "
             "bound: max(rollout, updates) ms |",

@@ -217,7 +217,7 @@ def sample_scan(rl):
 
 
 def tree_bytes(tree) -> int:
-    from rdher_jax.driver import tree_bytes as sweep_tree_bytes  # one definition
+    from rdher_jax.executor import tree_bytes as sweep_tree_bytes  # one definition
 
     return sweep_tree_bytes(tree)
 

@@ -7,7 +7,7 @@
 One epoch here is deliberately small: FetchReach with ``n_cycles=2`` (2 cycles x 2 envs x 50
 steps, 2 x 40 updates of batch 256, then 10 test episodes), all other settings the defaults
 (3x256 networks, 1e6-transition buffer). The single run is ``jax.jit(trainer.epoch)`` as in
-``python -m rdher_jax.train``; the N-run sweeps are ``rdher_jax.driver.RunBatch`` on one
+``python -m rdher_jax.train``; the N-run sweeps are ``rdher_jax.executor.Executor`` on one
 device (``jax.jit(jax.vmap(trainer.epoch))``), their runs the task's 7 lambda pairs x 5 seeds
 in order. All programs are compiled first, then timed in interleaved rounds (1 run, N=1, N=2,
 ...), so that the ratios are measured side by side under the same machine load.
@@ -33,7 +33,7 @@ from pathlib import Path
 import jax
 
 from rdher_jax.config import Config, resolve
-from rdher_jax.driver import RunBatch, build, stack, tree_bytes
+from rdher_jax.executor import Executor, build, stack, tree_bytes
 from rdher_jax.program import hparams_from_config
 
 HERE = Path(__file__).resolve().parent
@@ -94,7 +94,7 @@ def main() -> None:
     print(f"1 run (jit): first epoch incl. compile {first:.1f} s", flush=True)
     for n in a.runs:
         runs = run_configs(base, n)
-        prog = RunBatch(trainer, n, devices=[dev])
+        prog = Executor(trainer, n, devices=[dev])
         hps = prog.put(stack([hparams_from_config(c) for c in runs]))
         keys = prog.put(stack([jax.random.PRNGKey(c.seed) for c in runs]))
         vts = prog.init(keys, hps)

@@ -48,6 +48,8 @@ from typing import Any
 
 from rdher_jax.config import Config, ConfigError
 from rdher_jax.runlog import write_text_atomic
+from rdher_jax.startup import Startup, setup
+from rdher_jax.summary import grid_keys, settings_markdown
 from rdher_jax.tasks import MOVING_TASKS, PAPER_TASKS, TASK_NAMES
 from rdher_jax.tasks import TASKS as TASK_TABLE
 
@@ -341,17 +343,16 @@ def run_job(job: Job, progress: bool, dry_run: bool = False, log=print) -> str:
     if action == "skip":
         log(f"[{job.task} {job.name}] finished ({job.epochs} epochs): {job.sweep_dir}")
         return action
-    spec = sw.parse_sweep_args(argv)  # validates everything before anything runs
+    spec = sw.parse_sweep_args(argv).plan  # validates everything before anything runs
     log(f"[{job.task} {job.name}] {action}{' (dry run)' if dry_run else ''}: {cmd}")
     if dry_run:
         return action
     try:
-        sw.sweep(spec, argv, log=log)
+        out = sw.sweep(spec, argv, log=log)
     except sw.TrainingDiverged as e:  # every run diverged: its files keep the good epochs
         log(f"[{job.task} {job.name}] {e}")
         return "diverged"
-    md = (job.sweep_dir / "summary.md").read_text(encoding="utf-8")
-    log(md.split("\n\n| run |", 1)[0].rstrip())
+    log(settings_markdown(spec.base, out.summary[1], grid_keys(spec.varies)).rstrip())
     return action
 
 
@@ -752,11 +753,12 @@ def run_experiment(kind: str, script: str, args: Any, argv: Sequence[str],
         # writes the results and the report.
         if not args.dry_run:
             spec = distributed.parse({k: str(v) for k, v in keys.items() if v is not None})
-            if list(argv) == sys.argv[1:]:  # the command line: supervised child per process
-                rc = distributed.supervise(spec)
-                if rc is not None:
-                    return rc
-            distributed.initialize(spec)
+            # One of several processes: the work runs in a supervised child.
+            script_path = str(Path(__file__).resolve().parent / script)
+            rc = distributed.supervise(spec, [sys.executable, script_path, *argv])
+            if rc is not None:
+                return rc
+            setup(Startup(processes=spec))
         main = distributed.is_main()
         tasks = list(dict.fromkeys(args.tasks or PROFILES[args.profile].default_tasks))
         if args.first_seed < 0:

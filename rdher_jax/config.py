@@ -653,29 +653,6 @@ def preset_sets_overlap(name: str | None) -> bool:
     return preset is not None and preset.values.get("overlap") is True
 
 
-def wants_overlap(argv: Sequence[str]) -> bool:
-    """Whether a command line asks for ``overlap=true`` (itself or through its preset), or
-    resumes a run or sweep that has it: read before JAX starts, which must then be given a
-    second host device. Nothing here raises; the real parse reports bad input."""
-    import yaml
-
-    vals = dict(tok.split("=", 1) for tok in argv if "=" in tok)
-    if "overlap" in vals:
-        return vals["overlap"].strip().lower() in ("true", "1", "yes", "on")
-    if preset_sets_overlap(vals.get("preset")):
-        return True
-    if not vals.get("resume"):
-        return False
-    for name in ("config.yaml", "base_config.yaml"):
-        try:
-            saved = yaml.safe_load((Path(vals["resume"].strip()) / name).read_text("utf-8"))
-        except (OSError, ValueError, yaml.YAMLError):
-            continue
-        if isinstance(saved, dict) and saved.get("overlap") is True:
-            return True
-    return False
-
-
 def resume_config(cfg: Config, argv: Sequence[str]) -> Config:
     """The config of a resumed run: ``<resume>/config.yaml`` with ``argv`` re-applied (see
     :func:`continue_config`)."""

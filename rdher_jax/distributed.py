@@ -4,7 +4,7 @@ The same ``python -m rdher_jax.sweep ...`` command is started once per process: 
 ``mpirun`` (``jax.distributed.initialize`` detects SLURM and Open MPI by itself), or by hand
 with ``coordinator=HOST:PORT num_processes=N process_id=I``. After :func:`initialize` every
 process sees every process's devices in ``jax.devices()``; the driver lays the sweep's run axis
-over all of them (``driver.RunBatch``), and each process steps, logs and checkpoints only the
+over all of them (``executor.Executor``), and each process steps, logs and checkpoints only the
 runs on its own devices. Nothing inside an epoch is a collective; between epochs the processes
 exchange one small array (which runs have diverged), which is also what keeps them in step.
 

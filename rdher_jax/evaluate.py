@@ -21,6 +21,7 @@ from . import render
 from .checkpoint import Checkpointer
 from .config import ConfigError, from_yaml, main_guard, split_args
 from .render import DEFAULT_SIZE, RenderError
+from .startup import Startup, setup
 
 USAGE = ("usage: python -m rdher_jax.evaluate <run dir> [episodes=100] [seed=0] "
          "[backend=auto|mujoco|mjx] [scene=auto|original|mjx] "
@@ -67,7 +68,7 @@ _PROGRAMS: dict[str, tuple] = {}
 def _program(cfg):
     """(env, trainer, policy template, jitted evaluate) for ``cfg``, built once per process for
     configs that differ only in :data:`_PER_RUN_KEYS`."""
-    from .driver import build
+    from .executor import build  # loads mujoco: after start-up has chosen its GL backend
 
     key = repr(dataclasses.replace(cfg, **{k: None for k in _PER_RUN_KEYS}))
     if key not in _PROGRAMS:
@@ -120,6 +121,7 @@ def evaluate(run_dir: Path, episodes: int = 100, seed: int = 0, backend: str | N
 @main_guard
 def main(argv: list[str] | None = None) -> int:
     run_dir, o = parse(list(sys.argv[1:] if argv is None else argv))
+    setup(Startup(gl=o["video"] is not None))
     try:
         r = evaluate(run_dir, int(o["episodes"]), int(o["seed"]), o["backend"], o["scene"],
                      o["video"], int(o["video_episodes"]), int(o["width"]), int(o["height"]))

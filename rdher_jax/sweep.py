@@ -30,11 +30,13 @@ import math
 import sys
 import textwrap
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import yaml
 
+from . import distributed
 from .config import (
     FIELD_NAMES,
     RESUMABLE_KEYS,
@@ -50,21 +52,13 @@ from .config import (
     split_args,
     unknown_key,
     validate,
-    wants_overlap,
 )
-from .distributed import PROCESS_KEYS, supervise
-from .distributed import initialize as join_processes
+from .distributed import PROCESS_KEYS, ProcessSpec, supervise, wanted
 from .distributed import parse as parse_process_keys
-from .driver import (
-    BASE_CONFIG_FILE,
-    SPEC_FILE,
-    Plan,
-    TrainingDiverged,
-    drive,
-    request_host_devices,
-)
+from .plan import BASE_CONFIG_FILE, SPEC_FILE, DriveResult, Plan, TrainingDiverged
 from .runlog import check_fresh_dir, check_resume_dir
-from .summary import num
+from .startup import for_config, setup
+from .summary import grid_keys, num, settings_markdown
 
 PROG = "python -m rdher_jax.sweep"
 SWEEP_KEYS: dict[str, str] = {
@@ -224,8 +218,18 @@ def help_text_sweep() -> str:
     return "\n".join(lines) + "\n"
 
 
-def parse_sweep_args(argv: Sequence[str]) -> Plan:
-    """The sweep a command line asks for; ``--help`` prints the keys and exits 0.
+@dataclass(frozen=True)
+class SweepCommand:
+    """What a sweep command line asks for: the plan, and how this process joins the others
+    (all None: one process, unless SLURM or Open MPI started several)."""
+
+    plan: Plan
+    processes: ProcessSpec
+
+
+def parse_sweep_args(argv: Sequence[str]) -> SweepCommand:
+    """The sweep a command line asks for (parsed once, without JAX); ``--help`` prints the keys
+    and exits 0.
 
     Every error is a one-line ConfigError, raised before anything is built or written.
     """
@@ -235,6 +239,16 @@ def parse_sweep_args(argv: Sequence[str]) -> Plan:
         raise SystemExit(0)
     fields, other = split_args(argv, extra=[k for k in SWEEP_KEYS if k != "grid.<key>"],
                                prefixes=(GRID,))
+    processes = parse_process_keys(other)
+    # Every process must write into the same directory, so a multi-process sweep names it
+    # (sweep_dir= or resume=) rather than taking the time-stamped default.
+    if wanted(processes) and "sweep_dir" not in other and "resume" not in other:
+        raise ConfigError("a multi-process sweep needs sweep_dir= (or resume=): every process "
+                          "must name the same directory")
+    return SweepCommand(_plan(fields, other), processes)
+
+
+def _plan(fields: Mapping[str, str], other: Mapping[str, str]) -> Plan:
     if "run_dir" in fields:
         raise ConfigError("a sweep writes each run into <sweep_dir>/<run>; pass sweep_dir= "
                           "instead of run_dir=")
@@ -298,64 +312,39 @@ def _resume_plan(path: Path, fields: Mapping[str, str], other: Mapping[str, str]
 
 
 def sweep(plan: Plan, argv: Sequence[str] | None = None, log=print,
-          devices: Sequence[Any] | None = None) -> dict:
-    """Run (or continue) every run of ``plan``; returns the summary and paths."""
-    out = drive(plan, argv or [], prog=PROG, log=log, devices=devices)
-    rows, settings = out["summary"]
-    return {"sweep_dir": out["out_dir"], "runs": out["names"], "rows": rows,
-            "settings": settings, "diverged": out["diverged"], "program": out["program"],
-            "local": out["local"]}
+          devices: Sequence[Any] | None = None,
+          processes: ProcessSpec | None = None) -> DriveResult:
+    """Run (or continue) every run of ``plan``, the process set up for it first (and joined
+    to the others of a multi-process sweep); returns the driver's result, whose ``summary``
+    holds the per-run rows and per-setting aggregates."""
+    setup(for_config(plan.base, processes))
+    from .driver import drive  # JAX loads after start-up (rdher_jax.startup)
 
-
-def _other_keys(argv: Sequence[str]) -> dict[str, str]:
-    _, other = split_args(argv, extra=[k for k in SWEEP_KEYS if k != "grid.<key>"],
-                          prefixes=(GRID,))
-    return other
-
-
-def start_processes(argv: Sequence[str]) -> bool:
-    """Join a multi-process sweep when the command line (coordinator=, num_processes=,
-    process_id=) or the cluster (SLURM, Open MPI) asks for one; returns whether it did.
-
-    Every process must write into the same directory, so a multi-process sweep names it
-    (sweep_dir= or resume=) rather than taking the time-stamped default.
-    """
-    other = _other_keys(argv)
-    multi = join_processes(parse_process_keys(other))
-    if multi and "sweep_dir" not in other and "resume" not in other:
-        raise ConfigError("a multi-process sweep needs sweep_dir= (or resume=): every process "
-                          "must name the same directory")
-    return multi
+    return drive(plan, argv or [], prog=PROG, log=log, devices=devices)
 
 
 @main_guard
 def main(argv: list[str] | None = None) -> int:
-    command_line = argv is None
     argv = list(sys.argv[1:] if argv is None else argv)
-    if wants_overlap(argv):  # before anything starts JAX's backend
-        request_host_devices(2)
-    plan = parse_sweep_args(argv)
-    if command_line:  # one of several processes: the work runs in a supervised child
-        rc = supervise(parse_process_keys(_other_keys(argv)))
-        if rc is not None:
-            return rc
-    multi = start_processes(argv)
+    cmd = parse_sweep_args(argv)
+    # One of several processes: the work runs in a supervised child (rdher_jax.distributed).
+    rc = supervise(cmd.processes, [sys.executable, "-m", "rdher_jax.sweep", *argv])
+    if rc is not None:
+        return rc
+    plan = cmd.plan
     try:
-        out = sweep(plan, argv)
+        out = sweep(plan, argv, processes=cmd.processes)
     except TrainingDiverged as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
-    if multi:
-        import jax
-
-        mine = [out["runs"][i] for i in out.get("local", [])]
-        print(f"process {jax.process_index()} of {jax.process_count()}: runs "
+    if distributed.count() > 1:
+        mine = [out.names[i] for i in out.local]
+        print(f"process {distributed.index()} of {distributed.count()}: runs "
               f"{', '.join(mine) or '(none)'} done; results in {plan.out_dir}/")
-        if jax.process_index() != 0:
+        if not distributed.is_main():
             return 0
-    md = (plan.out_dir / "summary.md").read_text(encoding="utf-8")
-    print(md.split("\n\n| run |", 1)[0].rstrip())
-    print(f"\n{len(out['runs'])} runs ({out['program']}); results in {plan.out_dir}/: "
+    print(settings_markdown(plan.base, out.summary[1], grid_keys(plan.varies)).rstrip())
+    print(f"\n{len(out.names)} runs ({out.program}); results in {plan.out_dir}/: "
           "summary.md, summary.csv, <run>/metrics.csv, <run>/success.png")
     return 0
 

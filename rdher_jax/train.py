@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import sys
 from collections.abc import Sequence
-from pathlib import Path
 
 from .config import (
     Config,
@@ -17,30 +16,22 @@ from .config import (
     parse_args,
     resolve,
     resume_config,
-    wants_overlap,
 )
+from .plan import DriveResult, Plan, TrainingDiverged
 from .runlog import check_resume_dir
+from .startup import for_config, setup
 
 PROG = "python -m rdher_jax.train"
 
 
-def __getattr__(name: str):
-    # The driver (and with it JAX) is imported lazily, so ``main`` can start work before it;
-    # its names stay reachable from here.
-    if name in ("Plan", "TrainingDiverged", "drive", "request_host_devices"):
-        from . import driver
+def train(cfg: Config, argv: Sequence[str] | None = None, log=print) -> DriveResult:
+    """Run (or continue, with ``cfg.resume``) one training run, the process set up for it
+    first; returns the driver's result (``rows[0]``: its last metrics row, ``best[0]``: its
+    best test success)."""
+    setup(for_config(cfg))
+    from .driver import drive  # JAX loads after start-up (rdher_jax.startup)
 
-        return getattr(driver, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def train(cfg: Config, argv: Sequence[str] | None = None, log=print) -> dict:
-    """Run (or continue, with ``cfg.resume``) one training run; returns its final metrics row,
-    its best test success and its directory."""
-    from .driver import Plan, drive
-
-    out = drive(Plan.single(cfg), argv or [], prog=PROG, log=log)
-    return {"row": out["rows"][0], "best_success": out["best"][0], "run_dir": out["out_dir"]}
+    return drive(Plan.single(cfg), argv or [], prog=PROG, log=log)
 
 
 def load_resume_config(cfg: Config, argv: Sequence[str]) -> Config:
@@ -56,32 +47,29 @@ def load_resume_config(cfg: Config, argv: Sequence[str]) -> Config:
                           f"({type(e).__name__}: {e})") from None
 
 
+def parse_train_args(argv: Sequence[str]) -> Config:
+    """The resolved config a command line asks for (a resume: the run's own, continued);
+    ``--help`` prints every key and exits 0. Imports no JAX."""
+    cfg = parse_args(argv, prog=PROG)
+    return load_resume_config(cfg, argv) if cfg.resume is not None else resolve(cfg)
+
+
 @main_guard
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    # On a machine that never ran the project, compile the native physics' FFI handlers while
-    # JAX is imported (rdher_jax.ffi_build); nothing to do afterwards.
-    from . import ffi_build
-
-    ffi_build.start()
-    from .driver import TrainingDiverged, request_host_devices
-
-    if wants_overlap(argv):  # before anything starts JAX's backend
-        request_host_devices(2)
-    cfg = parse_args(argv, prog=PROG)
-    cfg = load_resume_config(cfg, argv) if cfg.resume is not None else resolve(cfg)
+    cfg = parse_train_args(argv)
     try:
         out = train(cfg, argv)
     except TrainingDiverged as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
-    row, run_dir = out["row"], Path(out["run_dir"])
+    row = out.rows[0]
     print(
         f"{cfg.env} {cfg.algo} seed {cfg.seed}: test success {float(row['test_success']):.3f} "
         f"after {int(float(row['env_steps']))} env steps "
-        f"({float(row['wall_time']):.0f} s), best {out['best_success']:.3f}"
+        f"({float(row['wall_time']):.0f} s), best {out.best[0]:.3f}"
     )
-    print(f"results in {run_dir}/: metrics.csv, success.png, config.yaml, checkpoints/")
+    print(f"results in {out.out_dir}/: metrics.csv, success.png, config.yaml, checkpoints/")
     return 0
 
 

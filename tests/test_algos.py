@@ -10,7 +10,7 @@ import jax
 import numpy as np
 import pytest
 
-from rdher_jax import driver
+from rdher_jax import executor
 from rdher_jax import train as train_mod
 from rdher_jax.config import ALGO_NAMES, Config, resolve
 
@@ -26,7 +26,7 @@ TINY = dict(env="FetchReach", n_cycles=3, n_batches=4, batch_size=32, buffer_siz
     for a in ALGO_NAMES])
 def test_every_algo_trains_a_few_cycles(tmp_path, algo):
     cfg = resolve(Config(**{**TINY, "algo": algo, "run_dir": str(tmp_path / algo)}))
-    env, trainer = driver.build(cfg)
+    env, trainer = executor.build(cfg)
     hp = trainer.hparams
     ts = jax.jit(trainer.init)(jax.random.PRNGKey(0), hp)
     epoch = jax.jit(trainer.epoch)
@@ -78,7 +78,7 @@ def test_fast_preset_learner_options_train(tmp_path, algo, terminal):
     opts = dict(n_step=3 if terminal != "exact" else 1, target_noise=0.2, policy_delay=2,
                 target_every=2, polyak=0.99, layer_norm=True, terminal=terminal)
     cfg = resolve(Config(**{**TINY, **opts, "algo": algo, "run_dir": str(tmp_path / algo)}))
-    env, trainer = driver.build(cfg)
+    env, trainer = executor.build(cfg)
     hp = trainer.hparams
     ts = jax.jit(trainer.init)(jax.random.PRNGKey(0), hp)
     ts, m = jax.jit(trainer.epoch)(ts, hp)

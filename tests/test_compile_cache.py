@@ -7,7 +7,7 @@ import pytest
 
 from rdher_jax import compile_cache
 from rdher_jax.config import parse_args, resolve
-from rdher_jax.driver import build
+from rdher_jax.executor import build
 from rdher_jax.program import hparams_from_config
 
 TINY = ["env=FetchReach", "hidden=16", "layers=1", "batch_size=16", "n_batches=2",

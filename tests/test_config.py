@@ -316,22 +316,29 @@ def from_yaml_text(text: str) -> Config:
         return from_yaml(p)
 
 
-def test_wants_overlap_reads_the_command_line_and_its_preset(tmp_path, monkeypatch):
+def test_start_up_takes_its_host_devices_from_the_one_parse(tmp_path, monkeypatch):
+    """overlap=true (given, through a preset, or saved in a resumed run) is what asks start-up
+    for a second host device; the parse that decides it is the trainer's own."""
     from rdher_jax import config as config_mod
+    from rdher_jax.startup import for_config
+    from rdher_jax.train import parse_train_args
 
     monkeypatch.setitem(config_mod.PRESETS, "ov", config_mod.Preset("test", {"overlap": True}))
-    monkeypatch.setitem(config_mod.PRESETS, "seq", config_mod.Preset("test", {"n_batches": 4}))
-    wants = config_mod.wants_overlap
-    assert wants(["overlap=true"]) and wants(["overlap=True", "env=FetchPush"])
-    assert not wants([]) and not wants(["overlap=false"])
-    assert wants(["preset=ov"]) and not wants(["preset=ov", "overlap=false"])
-    assert not wants(["preset=seq"]) and not wants(["preset=nosuch"])
-    run = tmp_path / "run"
-    run.mkdir()
-    (run / "config.yaml").write_text("overlap: true\n")
-    assert wants([f"resume={run}"])
-    (run / "config.yaml").write_text("overlap: false\n")
-    assert not wants([f"resume={run}"])
+
+    def devices(*argv):
+        return for_config(parse_train_args(list(argv))).host_devices
+
+    assert devices("overlap=true") == devices("overlap=True", "env=FetchPush") == 2
+    assert devices() == devices("overlap=false") == 1
+    assert devices("preset=ov") == 2 and devices("preset=ov", "overlap=false") == 1
+    for overlap in (True, False):
+        run = tmp_path / f"run{overlap}"
+        run.mkdir()
+        saved = config_mod.resolve(Config(overlap=overlap, run_dir=str(run)))
+        (run / "config.yaml").write_text(config_mod.to_yaml(saved))
+        assert devices(f"resume={run}") == (2 if overlap else 1)
+    with pytest.raises(ConfigError, match="unknown preset|preset"):
+        devices("preset=nosuch")
 
 
 def test_target_clip_default_is_the_committed_rows_clip() -> None:

@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rdher_jax import driver
+from rdher_jax import executor
 from rdher_jax.config import parse_args, resolve
 from rdher_jax.relabel import dher
 from rdher_jax.relabel.base import DHER
@@ -53,7 +53,7 @@ def reward_np(achieved, desired, threshold):
 @pytest.fixture(scope="module")
 def run():
     cfg = resolve(parse_args(ARGS))
-    env, trainer = driver.build(cfg)
+    env, trainer = executor.build(cfg)
     ts = jax.jit(trainer.init)(jax.random.PRNGKey(SEED), trainer.hparams)
     cycle = jax.jit(trainer.cycle)
     for _ in range(CYCLES):

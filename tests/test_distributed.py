@@ -116,13 +116,16 @@ def test_unreachable_coordinator_is_a_one_line_error(tmp_path):
     assert len(lines) == 1 and "could not reach the coordinator" in lines[0], proc.stderr
 
 
-def test_a_multi_process_sweep_names_its_directory(monkeypatch):
+def test_a_multi_process_sweep_names_its_directory():
     from rdher_jax import sweep
 
-    monkeypatch.setattr(sweep, "join_processes", lambda spec: True)
     with pytest.raises(ConfigError, match="needs sweep_dir="):
-        sweep.start_processes(["env=FetchReach", "coordinator=h:1", "num_processes=2",
-                               "process_id=0"])
+        sweep.parse_sweep_args(["env=FetchReach", "coordinator=h:1", "num_processes=2",
+                                "process_id=0"])
+    cmd = sweep.parse_sweep_args(["env=FetchReach", "coordinator=h:1", "num_processes=2",
+                                  "process_id=1", "sweep_dir=/tmp/x"])
+    assert (cmd.processes.coordinator, cmd.processes.num_processes,
+            cmd.processes.process_id) == ("h:1", 2, 1)
 
 
 # ------------------------------------------------------------------ real processes
@@ -223,7 +226,7 @@ def test_a_process_zero_policy_save_restores_in_one_process(tmp_path, monkeypatc
 
     from rdher_jax import checkpoint
     from rdher_jax.config import parse_args, resolve
-    from rdher_jax.driver import build
+    from rdher_jax.executor import build
     from rdher_jax.program import hparams_from_config
 
     cfg = resolve(parse_args(["hidden=8", "layers=1", "buffer_size=100", "batch_size=8"]))

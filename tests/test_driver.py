@@ -8,7 +8,7 @@ import jax
 import numpy as np
 import pytest
 
-from rdher_jax import driver
+from rdher_jax import driver, executor, outputs
 from rdher_jax import sweep as sweep_mod
 from rdher_jax import train as train_mod
 from rdher_jax.config import TRACED_KEYS, Config, ConfigError, parse_args, resolve
@@ -27,12 +27,12 @@ def read_rows(path):
 def test_grid_sweep_runs_each_value_as_a_separate_run_would(tmp_path):
     d = tmp_path / "sweep"
     plan = sweep_mod.parse_sweep_args([*TINY_ARGS, "grid.dher_fraction=[0.8,0.2]",
-                                       "grid.noise_eps=[0.1]", "seeds=1", f"sweep_dir={d}"])
+                                       "grid.noise_eps=[0.1]", "seeds=1", f"sweep_dir={d}"]).plan
     names = ["dher_fraction0.8_noise_eps0.1_lr2_lh1_s0", "dher_fraction0.2_noise_eps0.1_lr2_lh1_s0"]
     assert list(plan.names) == names
     assert [(c.dher_fraction, c.noise_eps) for c in plan.runs] == [(0.8, 0.1), (0.2, 0.1)]
     out = sweep_mod.sweep(plan, log=lambda *a: None)
-    assert out["runs"] == names
+    assert out.names == names
     rows = list(csv.DictReader(open(d / "summary.csv")))
     assert [(r["dher_fraction"], r["noise_eps"]) for r in rows] == [("0.8", "0.1"), ("0.2", "0.1")]
     md = (d / "summary.md").read_text()
@@ -48,7 +48,7 @@ def test_grid_sweep_runs_each_value_as_a_separate_run_would(tmp_path):
             np.testing.assert_allclose(float(ra[k]), float(rb[k]), rtol=1e-3, atol=1e-5,
                                        equal_nan=True, err_msg=k)
     # Resuming reads the grid back from sweep.yaml; changing it is refused.
-    again = sweep_mod.parse_sweep_args([f"resume={d}", "epochs=3"])
+    again = sweep_mod.parse_sweep_args([f"resume={d}", "epochs=3"]).plan
     assert again.names == plan.names and again.runs[1].dher_fraction == 0.2
     with pytest.raises(ConfigError, match="cannot change the grid"):
         sweep_mod.parse_sweep_args([f"resume={d}", "grid.dher_fraction=[0.5]"])
@@ -88,7 +88,7 @@ def test_traced_keys_are_exactly_what_reaches_the_hyperparameters():
         assert any(float(a) != float(b) for a, b in zip(ref, leaves, strict=True)), key
     # Runs that differ in anything else are not one program.
     with pytest.raises(ConfigError, match="differ only in traced keys and seeds, not in hidden"):
-        driver.batch_for([base, dataclasses.replace(base, hidden=64)])
+        executor.executor_for([base, dataclasses.replace(base, hidden=64)])
 
 
 @pytest.mark.parametrize("algo", ["her", "rdher"])  # config checks: test_config.py
@@ -97,10 +97,10 @@ def test_a_4096_env_run_has_the_state_eval_shape_predicts(algo):
     size ``jax.eval_shape`` gives (docs/performance.md's memory figures are read this way)."""
     cfg = resolve(parse_args([f"algo={algo}", "num_envs=4096", "buffer_size=204800",
                               "hidden=16", "layers=1"]))
-    _, trainer = driver.build(cfg)
+    _, trainer = executor.build(cfg)
     shape = jax.eval_shape(trainer.init, jax.random.PRNGKey(0), trainer.hparams)
     state = jax.jit(trainer.init)(jax.random.PRNGKey(0), trainer.hparams)
-    assert driver.tree_bytes(state) == driver.tree_bytes(shape)
+    assert executor.tree_bytes(state) == executor.tree_bytes(shape)
     assert state.buffer.obs.shape[0] == 204800 // 50
     if algo == "rdher":  # the ring holds every match one cycle of 4096 envs can record
         assert state.relabel.rec_i.shape == (2 * 4096 * 51 * 8,) == (cfg.dher_records,)
@@ -115,7 +115,7 @@ def test_compiled_ahead_runs_its_executable_and_falls_back_to_jit():
         traced.append(x.shape)
         return x * 2 + y, (x ** 2).sum()
 
-    ahead = driver.CompiledAhead(jax.jit(f, donate_argnums=0))
+    ahead = executor.CompiledAhead(jax.jit(f, donate_argnums=0))
     ahead.start(jax.ShapeDtypeStruct((3,), np.float32), np.float32(1))
     assert len(traced) <= 1  # the background thread traces once
     x = jax.numpy.arange(3, dtype=np.float32)
@@ -133,30 +133,30 @@ def test_the_plot_is_drawn_when_due_and_when_the_run_ends(tmp_path, monkeypatch)
     """success.png is redrawn at most every PLOT_EVERY_S while rows come, and always by
     close(); a row recorded since the last plot is never left undrawn at the end."""
     drawn = []
-    monkeypatch.setattr(driver, "plot_success", lambda csv_path, png, title: drawn.append(
+    monkeypatch.setattr(outputs, "plot_success", lambda csv_path, png, title: drawn.append(
         len(read_rows(csv_path))))
     cfg = resolve(Config(**TINY, run_dir=str(tmp_path / "run")))
-    out = driver.RunOutputs(cfg, cfg.run_dir)
+    out = outputs.RunOutputs(cfg)
     out.start({})
-    fields = driver.csv_fields()
+    fields = outputs.csv_fields()
 
     def row(epoch):
         return {k: (epoch if k == "epoch" else 0.5 if k == "test_success" else 0)
                 for k in fields}
 
-    monkeypatch.setattr(driver, "PLOT_EVERY_S", 3600.0)
-    out._plot_due = driver.time.monotonic() + 3600.0
-    policy = lambda: {"w": np.zeros(2, np.float32)}  # noqa: E731
-    out.record(row(1), policy)
+    monkeypatch.setattr(outputs, "PLOT_EVERY_S", 3600.0)
+    out._plot_due = outputs.time.monotonic() + 3600.0
+    policy = {"w": np.zeros(2, np.float32)}
+    out.write(row(1), policy)
     out.plot_if_due()
     assert drawn == []  # not due yet
-    out._plot_due = driver.time.monotonic() - 1.0
-    out.record(row(2), policy)
+    out._plot_due = outputs.time.monotonic() - 1.0
+    out.write(row(2), policy)
     out.plot_if_due()
     assert drawn == [2]
     out.plot_if_due()  # due again only after PLOT_EVERY_S
     assert drawn == [2]
-    out.record(row(3), policy)
+    out.write(row(3), policy)
     out.close()
     assert drawn == [2, 3]
 
@@ -168,8 +168,8 @@ def test_a_sweeps_skipped_actor_steps_stay_skipped_under_vmap(n_batches, kept):
     preset=fast sweep ran 1.2x slower than the same run alone); when policy_delay divides
     n_batches the predicate is the scan's shared index and the cond stays a cond."""
     cfg = resolve(Config(**{**TINY, "algo": "her", "policy_delay": 2, "n_batches": n_batches}))
-    _, program = driver.build(cfg)
-    hps = driver.stack([program.hparams] * 2)
+    _, program = executor.build(cfg)
+    hps = executor.stack([program.hparams] * 2)
     keys = jax.random.split(jax.random.PRNGKey(0), 2)
     states = jax.eval_shape(jax.vmap(program.init), keys, hps)
     text = str(jax.make_jaxpr(jax.vmap(program.epoch))(states, hps))

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from rdher_jax import buffer as rb
-from rdher_jax import driver
+from rdher_jax import executor
 from rdher_jax.config import Config, ConfigError, resolve
 from rdher_jax.relabel import HER, REAL, RelabelParams, make_her_energy, trajectory_energy
 from rdher_jax.relabel.energy import draw_episodes
@@ -115,7 +115,7 @@ def test_trainer_writes_the_stored_episodes_energies(tmp_path):
     cfg = resolve(Config(env="FetchPush", algo="her", replay_priority="energy", n_cycles=3,
                          n_batches=4, batch_size=32, buffer_size=2000, num_envs=2,
                          n_test_rollouts=2, hidden=32, progress=False, run_dir=str(tmp_path)))
-    env, trainer = driver.build(cfg)
+    env, trainer = executor.build(cfg)
     hp = trainer.hparams
     ts = jax.jit(trainer.init)(jax.random.PRNGKey(0), hp)
     ts, m = jax.jit(trainer.epoch)(ts, hp)

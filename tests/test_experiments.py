@@ -664,12 +664,12 @@ def test_bench_gpu_target_rule_and_bad_input(capsys):
 
 def test_bench_learning_hits_agree_with_the_stop_rule(tmp_path):
     """A success rate is a float32 ratio of counts: 7/10, 10/10, 10/10 average a hair under
-    0.9, and the trainer's stop_success (driver.reached_stop) counts it as 0.9; so does
+    0.9, and the trainer's stop_success (outputs.reached_stop) counts it as 0.9; so does
     bench_learning, and --retabulate rewrites a table whose hits were found without it."""
     import bench_learning  # noqa: PLC0415
 
     from rdher_jax.config import parse_args  # noqa: PLC0415
-    from rdher_jax.driver import reached_stop  # noqa: PLC0415
+    from rdher_jax.outputs import reached_stop  # noqa: PLC0415
 
     succ = [float(np.float32(k / 10)) for k in (2, 5, 7, 10, 10)]
     assert sum(succ[2:]) / 3 < 0.9  # the trap itself

@@ -72,7 +72,7 @@ def test_trainer_runs_unchanged_on_mjx(tmp_path):
                          n_batches=2, batch_size=16, buffer_size=2000, n_test_rollouts=2,
                          hidden=16, run_dir=str(tmp_path / "run"), progress=False))
     out = train_mod.train(cfg)
-    assert np.isfinite(float(out["row"]["critic_loss"]))
-    assert 0.0 <= float(out["row"]["test_success"]) <= 1.0
-    assert jnp.isfinite(out["row"]["actor_loss"])
-    assert int(float(out["row"]["env_steps"])) == 16 * 50
+    assert np.isfinite(float(out.rows[0]["critic_loss"]))
+    assert 0.0 <= float(out.rows[0]["test_success"]) <= 1.0
+    assert jnp.isfinite(out.rows[0]["actor_loss"])
+    assert int(float(out.rows[0]["env_steps"])) == 16 * 50

@@ -185,7 +185,7 @@ def test_episode_length_and_goal_speed_reach_the_env():
     motion: an episode of T=7 steps is done at its 7th step, not before, and the goal moved
     7 x speed along +y."""
     from rdher_jax.config import parse_args, resolve
-    from rdher_jax.driver import build
+    from rdher_jax.executor import build
 
     cfg = resolve(parse_args(["env=FetchPushMoving", "episode_length=7", "goal_speed=0.003",
                               "hidden=8", "buffer_size=1000", "batch_size=8"]))

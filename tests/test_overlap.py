@@ -1,5 +1,5 @@
 """``overlap=true``: each cycle's episodes collected on a second host device while the learner
-trains (driver.OverlapEpoch), against the sequential cycle.
+trains (executor.OverlapEpoch), against the sequential cycle.
 
 The checks that need two host devices run in a child process started with
 ``JAX_NUM_CPU_DEVICES=2`` (this process's JAX has one)."""
@@ -35,7 +35,7 @@ def test_overlapped_cycles_store_the_sequential_episodes():
     out = child(f"""
         import jax, numpy as np
         from rdher_jax.config import parse_args, resolve
-        from rdher_jax.driver import build, RunBatch, overlap_devices
+        from rdher_jax.executor import build, Executor, overlap_devices
         from rdher_jax.program import hparams_from_config
         args = {TINY!r} + ["random_eps=1.0", "run_dir=/tmp/unused-overlap"]
         got = {{}}
@@ -43,7 +43,7 @@ def test_overlapped_cycles_store_the_sequential_episodes():
             cfg = resolve(parse_args(args + [f"overlap={{str(overlap).lower()}}"]))
             devices, other = overlap_devices(None)
             _, program = build(cfg)
-            batch = RunBatch(program, 1, devices, vmapped=False,
+            batch = Executor(program, 1, devices, vmapped=False,
                              overlap=(cfg.n_cycles, other) if overlap else None)
             hp = jax.tree.map(lambda x: x[None], hparams_from_config(cfg))
             ts = batch.init(jax.random.PRNGKey(3)[None], hp)
@@ -103,7 +103,7 @@ def test_overlap_cli_sets_up_its_second_device(tmp_path):
 def test_overlap_needs_two_host_devices():
     import jax
 
-    from rdher_jax.driver import overlap_devices
+    from rdher_jax.executor import overlap_devices
 
     if len(jax.devices()) >= 2:
         pytest.skip("this process has two devices")
@@ -123,7 +123,7 @@ def test_split_init_is_init_overlap(vmapped):
     out = child(f"""
         import jax, numpy as np
         from rdher_jax.config import parse_args, resolve
-        from rdher_jax.driver import build, OverlapEpoch, overlap_devices
+        from rdher_jax.executor import build, OverlapEpoch, overlap_devices
         from rdher_jax.program import hparams_from_config
         cfg = resolve(parse_args({TINY!r} + ["overlap=true", "run_dir=/tmp/unused-overlap"]))
         devices, other = overlap_devices(None)
@@ -147,7 +147,7 @@ def test_a_preset_that_sets_overlap_names_itself_in_the_error(monkeypatch):
     import jax
 
     from rdher_jax import config as config_mod
-    from rdher_jax.driver import batch_for
+    from rdher_jax.executor import executor_for
 
     if len(jax.devices()) >= 2:
         pytest.skip("this process has two devices")
@@ -155,7 +155,7 @@ def test_a_preset_that_sets_overlap_names_itself_in_the_error(monkeypatch):
     cfg = config_mod.resolve(parse_args(["preset=ov", "env=FetchReach"]))
     with pytest.raises(ConfigError, match=r"second host device.*preset=ov sets overlap=true.*"
                        r"add overlap=false"):
-        batch_for([cfg])
+        executor_for([cfg])
 
 
 @pytest.mark.parametrize("settings, threads", [
@@ -166,11 +166,11 @@ def test_the_physics_takes_one_thread_beside_an_overlapped_learner(settings, thr
     physics_threads says otherwise; without overlap it takes every usable core."""
     from rdher_jax.envs.native import _cpu_threads
 
-    from rdher_jax import driver
+    from rdher_jax import executor
     from rdher_jax.config import resolve
 
     cfg = resolve(parse_args(["env=FetchReach", *settings]))
-    env, _ = driver.build(cfg)
+    env, _ = executor.build(cfg)
     assert env.backend.num_threads == (threads or _cpu_threads())
 
 

@@ -10,7 +10,7 @@ import sys
 import numpy as np
 import pytest
 
-from rdher_jax import driver
+from rdher_jax import driver, executor, outputs
 from rdher_jax import sweep as sweep_mod
 from rdher_jax import train as train_mod
 from rdher_jax.config import Config, resolve
@@ -32,7 +32,7 @@ def read_csv(path):
 
 def run_sweep(sweep_dir, *extra, **kw):
     spec = sweep_mod.parse_sweep_args([*TINY_ARGS, LAMBDAS, "seeds=2",
-                                       f"sweep_dir={sweep_dir}", *extra])
+                                       f"sweep_dir={sweep_dir}", *extra]).plan
     kw.setdefault("log", lambda *a: None)
     return sweep_mod.sweep(spec, **kw)
 
@@ -83,7 +83,7 @@ def _finished(proc):
 
 def test_sweep_outputs(ref):
     d, out = ref["dir"], ref["out"]
-    assert out["runs"] == RUNS and out["diverged"] == {}
+    assert out.names == RUNS and out.diverged == {}
     for name in ("summary.csv", "summary.md", "summary.json", "sweep.yaml",
                  "base_config.yaml", "run_info.json"):
         assert (d / name).stat().st_size > 0
@@ -154,23 +154,23 @@ def test_resume_equals_uninterrupted(ref, tmp_path, monkeypatch):
     """A sweep stopped after epoch 3's rows but before its checkpoint (the last one is after
     epoch 2) resumes from epoch 2 and ends exactly as the uninterrupted sweep."""
     d = ref["dir"]
-    real = driver.Checkpointer.save_latest
+    real = outputs.Checkpointer.save_latest
 
     def stop_at_3(self, epoch, state, meta):
         if epoch == 3:
             raise Interrupted
         return real(self, epoch, state, meta)
 
-    monkeypatch.setattr(driver.Checkpointer, "save_latest", stop_at_3)
+    monkeypatch.setattr(outputs.Checkpointer, "save_latest", stop_at_3)
     with pytest.raises(Interrupted):
         run_sweep(tmp_path / "s")
     monkeypatch.undo()
     assert len(read_csv(tmp_path / "s" / RUNS[0] / "metrics.csv")) == 3
-    spec = sweep_mod.parse_sweep_args([f"resume={tmp_path / 's'}"])
+    spec = sweep_mod.parse_sweep_args([f"resume={tmp_path / 's'}"]).plan
     logs = []
     out = sweep_mod.sweep(spec, log=logs.append)
     assert logs == [f"resuming {tmp_path / 's'} after epoch 2"]
-    assert out["runs"] == RUNS
+    assert out.names == RUNS
     for run in RUNS:
         assert_same_rows(read_csv(d / run / "metrics.csv"),
                          read_csv(tmp_path / "s" / run / "metrics.csv"), exact=True)
@@ -183,9 +183,9 @@ def _poison(monkeypatch, which):
     new compilation: the ref sweep's program is reused)."""
     import jax.numpy as jnp
 
-    real = driver.batch_for
+    real = executor.executor_for
 
-    def batch_for(runs, devices=None, vmapped=True):
+    def executor_for(runs, devices=None, vmapped=True):
         env, trainer, prog = real(runs, devices, vmapped)
         poisoned = copy.copy(prog)
 
@@ -197,14 +197,14 @@ def _poison(monkeypatch, which):
         poisoned.epoch = epoch
         return env, trainer, poisoned
 
-    monkeypatch.setattr(driver, "batch_for", batch_for)
+    monkeypatch.setattr(driver, "executor_for", executor_for)
 
 
 def test_a_diverged_run_stops_alone(ref, tmp_path, monkeypatch):
     _poison(monkeypatch, [1])
     logs = []
     out = run_sweep(tmp_path / "s", log=logs.append)
-    assert out["diverged"] == {RUNS[1]: 2}
+    assert out.diverged == {RUNS[1]: 2}
     assert any(ln.startswith(f"{RUNS[1]}: critic_loss became non-finite in epoch 2") for ln in logs)
     for run in RUNS:
         epochs = [int(r["epoch"]) for r in read_csv(tmp_path / "s" / run / "metrics.csv")]

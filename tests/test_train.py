@@ -13,7 +13,7 @@ import jax
 import numpy as np
 import pytest
 
-from rdher_jax import driver
+from rdher_jax import executor, outputs
 from rdher_jax import train as train_mod
 from rdher_jax.checkpoint import Checkpointer
 from rdher_jax.config import Config, parse_args, resolve
@@ -34,7 +34,7 @@ def read_csv(path):
 
 def test_epoch_traces_once(tmp_path):
     cfg = tiny_cfg(tmp_path, epochs=3)
-    env, trainer = driver.build(cfg)
+    env, trainer = executor.build(cfg)
     traces = []
 
     def epoch(ts, hp):
@@ -90,7 +90,7 @@ def test_resume_after_sigkill_equals_uninterrupted(tmp_path):
 
 
 def test_nan_loss_stops_run_and_keeps_last_checkpoint(tmp_path, monkeypatch):
-    real_build = driver.build
+    real_build = executor.build
 
     def build(cfg):
         env, trainer = real_build(cfg)
@@ -102,8 +102,8 @@ def test_nan_loss_stops_run_and_keeps_last_checkpoint(tmp_path, monkeypatch):
 
         return env, trainer._replace(epoch=epoch)
 
-    monkeypatch.setattr(driver, "build", build)
-    monkeypatch.setattr(driver, "_LAST_PROGRAM", {})
+    monkeypatch.setattr(executor, "build", build)
+    monkeypatch.setattr(executor, "_LAST_PROGRAM", {})
     cfg = tiny_cfg(tmp_path, epochs=4)
     with pytest.raises(train_mod.TrainingDiverged, match="critic_loss.*epoch 2.*epoch 1"):
         train_mod.train(cfg)
@@ -116,7 +116,7 @@ def test_stop_success_stops_after_the_window_and_resumes(tmp_path, monkeypatch):
     with a checkpoint at that epoch even between checkpoint_every epochs; resuming it trains
     nothing more until stop_success=null."""
     schedule = jax.numpy.array([0.0, 0.5, 1.0, 0.75, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0])
-    real_build = driver.build
+    real_build = executor.build
 
     def build(cfg):
         env, trainer = real_build(cfg)
@@ -127,8 +127,8 @@ def test_stop_success_stops_after_the_window_and_resumes(tmp_path, monkeypatch):
 
         return env, trainer._replace(epoch=epoch)
 
-    monkeypatch.setattr(driver, "build", build)
-    monkeypatch.setattr(driver, "_LAST_PROGRAM", {})
+    monkeypatch.setattr(executor, "build", build)
+    monkeypatch.setattr(executor, "_LAST_PROGRAM", {})
     logs = []
     cfg = tiny_cfg(tmp_path, epochs=9, checkpoint_every=4, stop_success=0.875, stop_window=2)
     out = train_mod.train(cfg, log=logs.append)
@@ -136,7 +136,7 @@ def test_stop_success_stops_after_the_window_and_resumes(tmp_path, monkeypatch):
     run = Path(cfg.run_dir)
     assert [float(r["test_success"]) for r in read_csv(run / "metrics.csv")] == \
         [0.0, 0.5, 1.0, 0.75]
-    assert float(out["row"]["test_success"]) == 0.75
+    assert float(out.rows[0]["test_success"]) == 0.75
     assert any("stopped after epoch 4" in m for m in logs), logs
     assert Checkpointer(run, read_only=True).latest_epoch() == 4
 
@@ -155,16 +155,16 @@ def test_stop_success_stops_after_the_window_and_resumes(tmp_path, monkeypatch):
 
 def test_reached_stop_needs_every_live_run():
     cfg = Config(stop_success=0.9, stop_window=3)
-    assert not driver.reached_stop(Config(), [[1.0] * 3], [0])  # stop_success=null: never
-    assert not driver.reached_stop(cfg, [[1.0, 1.0]], [0])  # fewer epochs than the window
-    assert driver.reached_stop(cfg, [[0.8, 0.9, 1.0]], [0])
+    assert not outputs.reached_stop(Config(), [[1.0] * 3], [0])  # stop_success=null: never
+    assert not outputs.reached_stop(cfg, [[1.0, 1.0]], [0])  # fewer epochs than the window
+    assert outputs.reached_stop(cfg, [[0.8, 0.9, 1.0]], [0])
     # 9/10 in float32 is a hair below 0.9 (0.89999998): still met, while a real shortfall is not.
     nine = float(np.float32(9) / np.float32(10))
-    assert nine < 0.9 and driver.reached_stop(cfg, [[nine] * 3], [0])
-    assert not driver.reached_stop(cfg, [[nine, nine, 0.8]], [0])
-    assert not driver.reached_stop(cfg, [[0.8, 0.9, 1.0], [1.0, 1.0, 0.6]], [0, 1])
-    assert driver.reached_stop(cfg, [[0.8, 0.9, 1.0], [1.0, 1.0, 0.6]], [0])  # run 1 diverged
-    assert not driver.reached_stop(cfg, [[1.0] * 3], [])  # every run diverged
+    assert nine < 0.9 and outputs.reached_stop(cfg, [[nine] * 3], [0])
+    assert not outputs.reached_stop(cfg, [[nine, nine, 0.8]], [0])
+    assert not outputs.reached_stop(cfg, [[0.8, 0.9, 1.0], [1.0, 1.0, 0.6]], [0, 1])
+    assert outputs.reached_stop(cfg, [[0.8, 0.9, 1.0], [1.0, 1.0, 0.6]], [0])  # run 1 diverged
+    assert not outputs.reached_stop(cfg, [[1.0] * 3], [])  # every run diverged
 
 
 def test_cli_errors_exit_2_with_one_line():
@@ -186,7 +186,7 @@ def test_run_outputs_and_evaluate(tmp_path):
 
     cfg = tiny_cfg(tmp_path, epochs=2)
     out = train_mod.train(cfg)
-    run = Path(out["run_dir"])
+    run = Path(out.out_dir)
     for name in ("config.yaml", "metrics.csv", "success.png", "run_info.json"):
         assert (run / name).stat().st_size > 0
     rows = read_csv(run / "metrics.csv")
@@ -216,7 +216,7 @@ def test_vmapped_hparams_equal_separate_runs(tmp_path):
     from rdher_jax.program import hparams_from_config
 
     cfg = tiny_cfg(tmp_path, epochs=1)
-    _, trainer = driver.build(cfg)
+    _, trainer = executor.build(cfg)
     cfgs = [dataclasses.replace(cfg, critic_lr=1e-3, lambda_r=1.0, seed=7),
             dataclasses.replace(cfg, critic_lr=3e-3, lambda_r=2.0, seed=8)]
     hps = jax.tree.map(lambda *x: jax.numpy.stack(x), *[hparams_from_config(c) for c in cfgs])
@@ -246,14 +246,14 @@ def test_metrics_columns_follow_epoch_metrics(tmp_path):
     from rdher_jax.runlog import LEADING_FIELDS
 
     names = [f.name for f in dataclasses.fields(EpochMetrics)]
-    cols = driver.csv_fields()
+    cols = outputs.csv_fields()
     assert cols[: len(LEADING_FIELDS)] == LEADING_FIELDS
     assert sorted(cols) == sorted({*names, "epoch", "wall_time"})
     m = EpochMetrics(**{n: np.float32(0.5) for n in names})
-    row = driver.epoch_row(3, m, 1.23456)
+    row = outputs.epoch_row(3, m, 1.23456)
     assert list(row) == list(cols) and row["epoch"] == 3 and row["wall_time"] == 1.235
-    assert driver.loss_fields(cols)[:3] == ("critic_loss", "actor_loss", "q_mean")
-    assert driver.nonfinite_losses({**row, "actor_loss": float("inf")}) == ["actor_loss"]
+    assert outputs.loss_fields(cols)[:3] == ("critic_loss", "actor_loss", "q_mean")
+    assert outputs.nonfinite_losses({**row, "actor_loss": float("inf")}) == ["actor_loss"]
 
 
 def test_unusable_run_dir_or_resume_is_one_line_error(tmp_path, one_line_error):
@@ -329,7 +329,7 @@ def test_target_every_moves_targets_inside_the_cycle(tmp_path):
     run), instead of once after the cycle; polyak=0 makes 'updated' mean 'equal to online'."""
     def one_cycle(**kw):
         cfg = tiny_cfg(tmp_path, epochs=1, polyak=0.0, n_batches=4, **kw)
-        _, trainer = driver.build(cfg)
+        _, trainer = executor.build(cfg)
         ts0 = jax.jit(trainer.init)(jax.random.PRNGKey(0), trainer.hparams)
         ts, _ = jax.jit(trainer.cycle)(ts0, trainer.hparams)
         return ts0.ddpg, ts.ddpg
