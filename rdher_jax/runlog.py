@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from rdher_jax.config import Config, ConfigError, default_run_dir
+from rdher_jax.config import ConfigError
 
 # The first columns of metrics.csv, in this order; any other field of the trainer's
 # EpochMetrics follows them in declaration order (see metric_fields).
@@ -126,27 +126,6 @@ def make_dir(path: str | Path, what: str = "run_dir") -> Path:
     except OSError as e:  # only if something changed since the check
         raise ConfigError(f"cannot create {what} {path}: {_os_reason(e)}") from None
     return path
-
-
-def make_run_dir(cfg: Config) -> Path:
-    """Create and return the run directory of ``cfg``.
-
-    A fresh run refuses a directory that exists and is not empty (it would mix two runs), or
-    one that cannot be created or written; a resumed run (``cfg.resume``) requires a writable
-    run directory with its config.yaml. Every refusal is a one-line ConfigError.
-    """
-    if cfg.resume is not None:
-        check_resume_dir(cfg.resume)
-        return Path(cfg.resume)
-    return make_dir(cfg.run_dir if cfg.run_dir is not None else default_run_dir(cfg))
-
-
-def check_run_dir(cfg: Config) -> None:
-    """What :func:`make_run_dir` checks, without creating anything."""
-    if cfg.resume is not None:
-        check_resume_dir(cfg.resume)
-    else:
-        check_fresh_dir(cfg.run_dir if cfg.run_dir is not None else default_run_dir(cfg))
 
 
 def _fsync_dir(path: Path) -> None:

@@ -8,7 +8,7 @@ import jax
 import numpy as np
 import pytest
 
-from rdher_jax import driver, executor, outputs
+from rdher_jax import executor, outputs
 from rdher_jax import sweep as sweep_mod
 from rdher_jax import train as train_mod
 from rdher_jax.config import TRACED_KEYS, Config, ConfigError, parse_args, resolve

@@ -8,6 +8,7 @@ the same program, and the benchmark's second call resumes first the algorithm co
 import csv
 import json
 import math
+import re
 import shutil
 import subprocess
 import sys
@@ -540,12 +541,30 @@ def test_windows_of_a_moving_goal_table():
     assert math.isclose(w2.mean, 0.9) and math.isclose(w2.std, math.sqrt(0.02))
 
 
+def _declared_options(script: str) -> set[str]:
+    """The --options a script's source (and the profiles' common arguments it adds) declare."""
+    src = (EXP / script).read_text(encoding="utf-8")
+    if "add_common_args(" in src:
+        src += (EXP / "profiles.py").read_text(encoding="utf-8")
+    return set(re.findall(r"add_argument\(\s*\"(--[\w-]+)\"", src))
+
+
 @pytest.mark.parametrize("script", ["ablation.py", "benchmark.py", "report.py",
                                     "moving_goals.py", "beyond.py"])
 def test_help(script):
+    """--help names the script's own command and documents every option it declares, and a
+    wrong option is a usage error (exit 2), not a run."""
     proc = subprocess.run([sys.executable, str(EXP / script), "--help"], capture_output=True,
                           text=True, timeout=60)
-    assert proc.returncode == 0 and "usage: python experiments/" in proc.stdout
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.startswith(f"usage: python experiments/{script}"), proc.stdout[:200]
+    options = _declared_options(script)
+    assert options, script
+    missing = sorted(o for o in options if o not in proc.stdout)
+    assert not missing, f"{script} --help does not list {missing}"
+    bad = subprocess.run([sys.executable, str(EXP / script), "--no-such-option"],
+                         capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "error:" in bad.stderr and "Traceback" not in bad.stderr
 
 
 def test_statistics():

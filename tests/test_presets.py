@@ -1,47 +1,77 @@
-"""``preset=fast`` against its values written out here, not read back from ``PRESETS``."""
+"""``preset=fast`` against its documentation: the table of keys, defaults and values in
+docs/performance.md is what a reader trusts, so the code must set exactly what it says."""
 
 import dataclasses
+import re
+from pathlib import Path
 
 import pytest
 
-from rdher_jax.config import Config, parse_args
+from rdher_jax.config import PRESETS, Config, parse_args
 
-# What docs/performance.md's 'preset=fast' section and bench_learning measured; a change to
-# PRESETS that is not a change to these numbers is a bug.
-FAST = {
-    "num_envs": 1,
-    "n_batches": 40,
-    "layers": 2,
-    "action_l2": 0.0,
-    "target_every": 2,
-    "polyak": 0.99,
-    "target_noise": 0.2,
-    "policy_delay": 2,
-    "terminal": "exact",
-    "dher_fraction": 0.2,
-    "overlap": True,
-}
+DOC = Path(__file__).resolve().parents[1] / "docs" / "performance.md"
 
 
-def test_fast_preset_values() -> None:
-    cfg = parse_args(["preset=fast"])
-    assert cfg.preset == "fast"
-    got = {k: getattr(cfg, k) for k in FAST}
-    assert got == FAST
-    for k, v in FAST.items():
-        assert type(getattr(cfg, k)) is type(v), k  # 0.0 stays a float, 1 an int
-    # Every other key keeps its default: the preset changes exactly these.
-    default = Config()
-    others = [f.name for f in dataclasses.fields(Config) if f.name not in (*FAST, "preset")]
+def _value(text: str):
+    """A table cell's value as the config holds it: '0.2 (clipped at 0.5)' -> 0.2."""
+    word = text.strip().strip("`").split(" (")[0].strip().strip("`")
+    if word in ("true", "false"):
+        return word == "true"
+    for cast in (int, float):
+        try:
+            return cast(word)
+        except ValueError:
+            pass
+    return word
+
+
+def documented_fast() -> dict[str, tuple]:
+    """{key: (default, fast)} from the 'preset=fast' table of docs/performance.md."""
+    text = DOC.read_text(encoding="utf-8")
+    section = text.split("## FetchPush on a 2-core CPU: `preset=fast`", 1)[1]
+    table = section.split("| key | default | `fast` | why |", 1)[1].split("\n\n", 1)[0]
+    rows = {}
+    for line in table.splitlines()[2:]:
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        keys = re.findall(r"`(\w+)`", cells[0])
+        defaults, fast = cells[1].split(", "), cells[2].split(", ")
+        assert len(keys) == len(defaults) == len(fast), line
+        rows.update({k: (_value(d), _value(f)) for k, d, f in zip(keys, defaults, fast,
+                                                                    strict=True)})
+    return rows
+
+
+def test_fast_preset_is_the_documented_table() -> None:
+    doc = documented_fast()
+    assert doc, "no preset=fast table found in docs/performance.md"
+    assert set(doc) == set(PRESETS["fast"].values), "the table and the preset list other keys"
+    cfg, default = parse_args(["preset=fast"]), Config()
+    for k, (doc_default, doc_fast) in doc.items():
+        assert getattr(default, k) == doc_default, f"{k}: default {getattr(default, k)!r}"
+        assert getattr(cfg, k) == doc_fast, f"{k}: preset=fast sets {getattr(cfg, k)!r}"
+        assert type(getattr(cfg, k)) is type(getattr(default, k)), k  # 0.0 stays a float
+    # Every other key keeps its default: the preset changes exactly the documented keys.
+    others = [f.name for f in dataclasses.fields(Config) if f.name not in (*doc, "preset")]
     assert {k: getattr(cfg, k) for k in others} == {k: getattr(default, k) for k in others}
+
+
+def test_the_table_reader_sees_a_changed_value(tmp_path, monkeypatch) -> None:
+    """The check can fail: a table that documents another value is caught."""
+    text = DOC.read_text(encoding="utf-8").replace("| `layers` | 3 | 2 |", "| `layers` | 3 | 4 |")
+    fake = tmp_path / "performance.md"
+    fake.write_text(text)
+    monkeypatch.setattr(__import__(__name__), "DOC", fake)
+    with pytest.raises(AssertionError, match="layers"):
+        test_fast_preset_is_the_documented_table()
 
 
 @pytest.mark.parametrize("argv", [["preset=fast", "polyak=0.9"], ["polyak=0.9", "preset=fast"]])
 def test_explicit_key_overrides_the_preset(argv) -> None:
     cfg = parse_args(argv)
+    fast = PRESETS["fast"].values
     assert cfg.polyak == 0.9
-    assert {k: getattr(cfg, k) for k in FAST if k != "polyak"} == {
-        k: v for k, v in FAST.items() if k != "polyak"}
+    assert {k: getattr(cfg, k) for k in fast if k != "polyak"} == {
+        k: v for k, v in fast.items() if k != "polyak"}
 
 
 def test_override_back_to_the_default_value() -> None:

@@ -8,14 +8,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rdher_jax.config import Config, ConfigError, parse_args
+from rdher_jax.config import Config, ConfigError, default_run_dir
 from rdher_jax.runlog import (
     LEADING_FIELDS,
     MetricsCSV,
     TBWriter,
     check_dir_usable,
-    check_run_dir,
-    make_run_dir,
+    check_fresh_dir,
+    check_resume_dir,
+    make_dir,
     metric_fields,
     plot_success,
     write_json_atomic,
@@ -43,37 +44,36 @@ def _leftovers(directory: Path) -> list[str]:
     return [p.name for p in directory.iterdir() if p.name.endswith(".tmp")]
 
 
-def test_make_run_dir(tmp_path: Path) -> None:
+def test_fresh_and_resumed_dirs(tmp_path: Path) -> None:
     run = tmp_path / "a" / "b"
-    cfg = parse_args([f"run_dir={run}"])
-    assert make_run_dir(cfg) == run and run.is_dir()
-    assert make_run_dir(cfg) == run  # existing but empty is fine
+    assert make_dir(run) == run and run.is_dir()
+    assert make_dir(run) == run  # existing but empty is fine
     (run / "metrics.csv").write_text("x\n")
     with pytest.raises(ConfigError, match="exists and is not empty; pass resume="):
-        make_run_dir(cfg)
+        make_dir(run)
     with pytest.raises(ConfigError, match="has no config.yaml"):
-        make_run_dir(parse_args([f"resume={run}"]))
+        check_resume_dir(run)
     (run / "config.yaml").write_text("env: FetchReach\n")
-    assert make_run_dir(parse_args([f"resume={run}"])) == run
+    check_resume_dir(run)
     with pytest.raises(ConfigError, match="does not exist"):
-        make_run_dir(parse_args([f"resume={tmp_path / 'missing'}"]))
+        check_resume_dir(tmp_path / 'missing')
     (tmp_path / "file").write_text("")
     with pytest.raises(ConfigError, match="not a directory"):
-        make_run_dir(parse_args([f"run_dir={tmp_path / 'file'}"]))
+        make_dir(tmp_path / 'file')
     with pytest.raises(ConfigError, match="cannot create run_dir .*file is not a directory"):
-        make_run_dir(parse_args([f"run_dir={tmp_path / 'file' / 'x'}"]))
+        make_dir(tmp_path / 'file' / 'x')
     with pytest.raises(ConfigError, match="has no config.yaml"):
-        make_run_dir(parse_args([f"resume={tmp_path / 'a'}"]))
+        check_resume_dir(tmp_path / 'a')
 
 
 def test_unusable_dirs_leave_nothing_behind(tmp_path: Path) -> None:
     before = sorted(tmp_path.rglob("*"))
     check_dir_usable(tmp_path / "new" / "deeper", "run_dir")  # usable: created, then removed
-    check_run_dir(parse_args([f"run_dir={tmp_path / 'other' / 'run'}"]))
+    check_fresh_dir(tmp_path / 'other' / 'run')
     assert sorted(tmp_path.rglob("*")) == before
     for bad in ("/proc/x/y", "/sys/rdher-test"):
         with pytest.raises(ConfigError, match="cannot create run_dir") as info:
-            make_run_dir(parse_args([f"run_dir={bad}"]))
+            make_dir(bad)
         assert "\n" not in str(info.value)
         assert not Path(bad).exists()
 
@@ -105,9 +105,9 @@ def test_read_only_dirs_are_refused(tmp_path: Path) -> None:
     ro.chmod(0o555)
     try:
         with pytest.raises(ConfigError, match="cannot create run_dir .*Permission denied"):
-            make_run_dir(parse_args([f"run_dir={ro / 'a' / 'b'}"]))
+            make_dir(ro / 'a' / 'b')
         with pytest.raises(ConfigError, match="is not writable"):
-            make_run_dir(parse_args([f"resume={ro}"]))
+            check_resume_dir(ro)
         assert sorted(p.name for p in ro.iterdir()) == ["config.yaml"]
     finally:
         ro.chmod(0o755)
@@ -131,16 +131,16 @@ def test_unwritable_dirs_are_refused_for_root_too(tmp_path: Path,
 
     monkeypatch.setattr(Path, "mkdir", mkdir)
     with pytest.raises(ConfigError, match="cannot create run_dir .*Permission denied"):
-        make_run_dir(parse_args([f"run_dir={tmp_path / 'a' / 'b' / 'c'}"]))
+        make_dir(tmp_path / 'a' / 'b' / 'c')
     assert list(tmp_path.iterdir()) == []  # 'a' was created to find out, and removed
     monkeypatch.setattr(Path, "write_bytes", write_bytes)
     with pytest.raises(ConfigError, match="run_dir .* is not writable: Read-only file system"):
-        make_run_dir(parse_args([f"run_dir={tmp_path / 'x' / 'y'}"]))
+        make_dir(tmp_path / 'x' / 'y')
     assert list(tmp_path.iterdir()) == []
     (tmp_path / "run").mkdir()
     (tmp_path / "run" / "config.yaml").write_text("env: FetchReach\n")
     with pytest.raises(ConfigError, match="resume directory .* is not writable"):
-        make_run_dir(parse_args([f"resume={tmp_path / 'run'}"]))
+        check_resume_dir(tmp_path / 'run')
     assert [p.name for p in (tmp_path / "run").iterdir()] == ["config.yaml"]
 
 
@@ -151,9 +151,9 @@ def test_metric_fields_keep_the_leading_columns_first() -> None:
     assert metric_fields(["updates", "x"]) == ("epoch", "updates", "wall_time", "x")
 
 
-def test_make_run_dir_default_name(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_default_run_dir_name(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.chdir(tmp_path)
-    path = make_run_dir(Config(env="FetchSlide", seed=4))
+    path = make_dir(default_run_dir(Config(env="FetchSlide", seed=4)))
     assert path.parent == Path("runs") and path.name.startswith("FetchSlide-her-s4-")
     assert (tmp_path / path).is_dir()
 
