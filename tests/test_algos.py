@@ -86,3 +86,21 @@ def test_fast_preset_learner_options_train(tmp_path, algo, terminal):
     for name in ("critic_loss", "actor_loss", "q_mean"):
         assert math.isfinite(float(getattr(m, name))), name
     assert int(m.updates) == cfg.n_cycles * cfg.n_batches
+    # Each option took effect: the delayed actor stepped on every 2nd update only (Adam's
+    # step counts), and the critic carries LayerNorm (the actor never does).
+    assert _adam_count(ts.ddpg.critic_opt_state) == int(m.updates)
+    assert _adam_count(ts.ddpg.actor_opt_state) == int(m.updates) // 2
+    assert "norm_0" in _param_names(ts.ddpg.critic_params)
+    assert "norm_0" not in _param_names(ts.ddpg.actor_params)
+
+
+def _param_names(params) -> str:
+    return " ".join(jax.tree_util.keystr(p) for p, _ in jax.tree_util.tree_leaves_with_path(params))
+
+
+def _adam_count(opt_state) -> int:
+    """The step count of Adam's state in an optax chain (its ``count`` leaf)."""
+    found = [int(leaf) for path, leaf in jax.tree_util.tree_leaves_with_path(opt_state)
+             if jax.tree_util.keystr(path).endswith(".count")]
+    assert found, opt_state
+    return max(found)
