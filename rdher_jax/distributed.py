@@ -19,15 +19,19 @@ exit 1 when the sweep it had joined stopped.
 
 from __future__ import annotations
 
+import ctypes
 import os
 import re
 import signal
 import socket
 import subprocess
 import sys
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
+
+import numpy as np
 
 from .config import ConfigError
 
@@ -139,8 +143,6 @@ def initialize(spec: ProcessSpec) -> bool:
     _report_joined()
     if spec.explicit:
         # The runtime takes process 0's count and lets a process that says otherwise join.
-        import numpy as np
-
         counts = [int(c) for c in gather(np.int64(spec.num_processes))]
         if len(set(counts)) > 1:
             raise ConfigError(
@@ -173,8 +175,6 @@ def wanted(spec: ProcessSpec) -> bool:
 
 def _die_with_parent() -> None:  # runs in the child between fork and exec
     try:
-        import ctypes
-
         ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):
         pass  # not Linux: a killed parent leaves its child to the runtime's heartbeat
@@ -228,8 +228,6 @@ def _check_coordinator(spec: ProcessSpec) -> None:
     """What the runtime would end with an abort and a stack trace, as a one-line ConfigError:
     process 0 cannot listen on the coordinator's port, or another process cannot reach it
     within ``init_timeout`` seconds."""
-    import time
-
     host, port = spec.coordinator.rsplit(":", 1)
     host = host.strip("[]")
     if spec.process_id == 0:
@@ -276,8 +274,6 @@ def gather(x: Any) -> Any:
     """Every process's ``x`` (an array of the same shape and dtype everywhere), stacked along a
     new leading process axis, on every process. One process: ``x[None]``. A collective: every
     process must call it at the same point."""
-    import numpy as np
-
     if count() == 1:
         return np.asarray(x)[None]
     from jax.experimental import multihost_utils
@@ -296,8 +292,6 @@ def barrier(name: str) -> None:
 
 def hosts() -> list[str]:
     """Each process's host name, in process order."""
-    import numpy as np
-
     name = socket.gethostname().encode()[:64].ljust(64, b"\0")
     rows = gather(np.frombuffer(name, dtype=np.uint8))
     return [bytes(r).rstrip(b"\0").decode(errors="replace") for r in rows]

@@ -121,8 +121,8 @@ def evaluate(run_dir: Path, episodes: int = 100, seed: int = 0, backend: str | N
 @main_guard
 def main(argv: list[str] | None = None) -> int:
     run_dir, o = parse(list(sys.argv[1:] if argv is None else argv))
-    setup(Startup(gl=o["video"] is not None))
     try:
+        setup(Startup(gl=o["video"] is not None))
         r = evaluate(run_dir, int(o["episodes"]), int(o["seed"]), o["backend"], o["scene"],
                      o["video"], int(o["video_episodes"]), int(o["width"]), int(o["height"]))
     except RenderError as e:

@@ -34,6 +34,9 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.experimental import multihost_utils
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
 
 from .config import RESUMABLE_KEYS, TRACED_KEYS, Config, ConfigError, preset_sets_overlap, to_yaml
 from .envs import default_backend, make_env
@@ -241,9 +244,6 @@ class Executor:
             return
         if overlap is not None:
             raise ValueError("an overlap=true program runs on one learner device")
-        from jax.sharding import Mesh, NamedSharding
-        from jax.sharding import PartitionSpec as P
-
         self.mesh = Mesh(np.array(self.devices), ("runs",))
         self.sharding = NamedSharding(self.mesh, P("runs"))
         blocks = sorted((sl[0].start or 0, sl[0].stop if sl[0].stop is not None
@@ -307,8 +307,6 @@ class Executor:
         """
         if not self.multi_process:
             return jax.tree.map(np.asarray, jax.device_get(tree))
-        from jax.experimental import multihost_utils
-
         return jax.tree.map(np.asarray, multihost_utils.process_allgather(tree, tiled=True))
 
     def put(self, tree: Any) -> Any:
