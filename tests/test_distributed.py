@@ -26,11 +26,8 @@ RUNS = ["lr1_lh1_s0", "lr1_lh1_s1", "lr2_lh1_s0", "lr2_lh1_s1"]
 
 
 def env(devices: int = 1) -> dict:
-    e = {**os.environ, "JAX_PLATFORMS": "cpu"}
-    e.pop("XLA_FLAGS", None)
-    if devices > 1:
-        e["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={devices}"
-    return e
+    # JAX_NUM_CPU_DEVICES is the option rdher_jax.startup sets (jax_num_cpu_devices).
+    return {**os.environ, "JAX_PLATFORMS": "cpu", "JAX_NUM_CPU_DEVICES": str(devices)}
 
 
 def free_port() -> int:

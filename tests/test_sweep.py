@@ -62,8 +62,7 @@ def ref(tmp_path_factory):
     """An uninterrupted 2 x 2 sweep on one device, in this process; meanwhile the same sweep
     on three host devices in a subprocess."""
     root = tmp_path_factory.mktemp("ref")
-    env = {**os.environ, "XLA_FLAGS": os.environ.get("XLA_FLAGS", "")
-           + " --xla_force_host_platform_device_count=3"}
+    env = {**os.environ, "JAX_NUM_CPU_DEVICES": "3"}
     sharded = _popen(["rdher_jax.sweep", *TINY_ARGS, LAMBDAS, "seeds=2",
                       f"sweep_dir={root / 'sharded'}"], env=env)
     try:
