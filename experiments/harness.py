@@ -73,6 +73,11 @@ def command(script: str, argv: Sequence[str] | None = None) -> str:
                      *(Path(a).name if a.startswith("/") else shlex.quote(a) for a in argv)])
 
 
+def say(line: str) -> None:
+    """Print a progress line now (stdout is a pipe when a script runs under another)."""
+    print(line, flush=True)
+
+
 # ---- the host
 
 
@@ -172,10 +177,10 @@ class Bench:
     once with the default 0) and keeps the time per call divided by ``per``. Functions are
     timed in groups; in each repeat every group runs once, in an order rotated by the repeat,
     so that variants compared with each other (one group) are measured within seconds of each
-    other.
+    other. ``log``: where progress lines go (None: nowhere); ``clock``: seconds (a test's fake).
     """
 
-    def __init__(self, min_time: float = 0.0, log: Callable[[str], Any] | None = print,
+    def __init__(self, min_time: float = 0.0, log: Callable[[str], Any] | None = say,
                  clock: Callable[[], float] = time.perf_counter):
         self.min_time, self.log, self.clock = min_time, log, clock
         self.fns: dict[str, tuple] = {}
@@ -185,21 +190,23 @@ class Bench:
         self.times: dict[str, list[float]] = {}
 
     def add(self, name: str, f: Callable, *args: Any, per: int = 1, group: str = "main") -> None:
-        """Compile (the first call) and calibrate (the second) ``f(*args)``. ``per``: calls of
-        the timed unit inside one call of ``f`` (times are divided by it)."""
+        """Compile (the first call, timed: ``compile_s``) and, with a ``min_time``, calibrate
+        (a second call) ``f(*args)``. ``per``: calls of the timed unit inside one call of ``f``
+        (times are divided by it)."""
         t0 = self.clock()
         _block(f(*args))
-        self.compile_s[name] = self.clock() - t0
-        t0 = self.clock()
-        _block(f(*args))
-        one = self.clock() - t0
+        self.compile_s[name] = one = self.clock() - t0
+        if self.min_time > 0:  # without one, a call more would only cost time
+            t0 = self.clock()
+            _block(f(*args))
+            one = self.clock() - t0
         self.inner[name] = max(1, math.ceil(self.min_time / max(one, 1e-6)))
         self.fns[name] = (f, args, per)
         self.groups.setdefault(group, []).append(name)
         self.times[name] = []
         if self.log:
             self.log(f"  compiled {name}: {self.compile_s[name]:.1f} s, one call "
-                     f"{one * 1e3:.2f} ms")
+                     f"{one * 1e3:.2f} ms")  # with compilation, without a min_time
 
     def _time(self, name: str) -> float:
         f, args, per = self.fns[name]
