@@ -78,6 +78,10 @@ def main(argv: list[str] | None = None) -> None:
     if args.child:
         print(json.dumps(child(args.repeats)))
         return
+    from rdher_jax import startup
+
+    # This process only starts the children (and reads the host): nothing to build.
+    startup.setup(startup.Startup(ffi=False, compile_cache=False))
 
     variants = []
     for v in args.variants:
