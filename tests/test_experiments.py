@@ -764,7 +764,7 @@ def test_bench_harness_writes_the_same_figures_to_markdown_and_json(tmp_path):
         "python experiments/bench_x.py --out b.md 'k=v w'")
 
 
-@pytest.mark.parametrize("script", ["bench_cycle", "bench_envs", "bench_overlap",
+@pytest.mark.parametrize("script", ["bench_cycle", "bench_envs", "bench_gpu", "bench_overlap",
                                     "bench_processes", "bench_relabel", "bench_start",
                                     "bench_sweep", "bench_train", "bench_xla_flags"])
 def test_bench_scripts_import_without_side_effects(script, monkeypatch):
