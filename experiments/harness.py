@@ -99,17 +99,18 @@ def machine(h: Mapping[str, Any]) -> str:
 
 
 def machine_limits(script: str | None) -> dict | None:
-    """Run a machine-ceilings script (``--limits-script``) as bench_learning does: its table
-    (stdout) and its figures (the JSON it writes to ``--json PATH``), or None without one."""
+    """Run a machine-ceilings script (``--limits-script``): its table (stdout) and its figures
+    (the JSON it writes to ``--json PATH``), or None without one. A script that fails stops the
+    benchmark (``CalledProcessError``) before anything is measured."""
     if not script:
         return None
     t0 = time.perf_counter()
     with tempfile.NamedTemporaryFile(suffix=".json") as f:
         p = subprocess.run([sys.executable, script, "--json", f.name], capture_output=True,
-                           text=True, timeout=600)
-        figures = json.loads(Path(f.name).read_text() or "{}") if p.returncode == 0 else {}
+                           text=True, timeout=600, check=True)
+        figures = json.loads(Path(f.name).read_text() or "{}")
     return {"script": Path(script).name, "table": p.stdout.strip(), "figures": figures,
-            "returncode": p.returncode, "seconds": time.perf_counter() - t0}
+            "seconds": time.perf_counter() - t0}
 
 
 # ---- interleaved repeats

@@ -808,3 +808,21 @@ def test_bench_processes_layouts_interleaved_and_written(tmp_path, monkeypatch):
                                "2 processes, 1 core each": [8.0, 10.0],
                                "1 process, 2 cores, 2 devices": [11.0, 13.0]}
     assert "| 2 processes, 1 core each | 9.0 | 1.50x |" in out.read_text()
+
+
+def test_bench_harness_machine_limits(tmp_path):
+    """--limits-script: the script's table and the figures it writes to --json; a failing one
+    stops the benchmark."""
+    import harness  # noqa: PLC0415
+
+    ok = tmp_path / "limits.py"
+    ok.write_text("import json, sys\nprint('| core | 1.0 |')\n"
+                  "json.dump({'gflops': 2.5}, open(sys.argv[sys.argv.index('--json') + 1], 'w'))\n")
+    lim = harness.machine_limits(str(ok))
+    assert (lim["script"], lim["table"], lim["figures"]) == ("limits.py", "| core | 1.0 |",
+                                                             {"gflops": 2.5})
+    assert harness.machine_limits(None) is None
+    bad = tmp_path / "bad.py"
+    bad.write_text("raise SystemExit(3)\n")
+    with pytest.raises(subprocess.CalledProcessError):
+        harness.machine_limits(str(bad))
