@@ -14,32 +14,20 @@ Beside them, a plain XLA learner of the same widths (an actor and a critic MLP o
 batches: the critic's TD loss, the actor through the critic, two Adam steps, the target
 average; no replay, sampling or relabelling) times the update's arithmetic alone, the ceiling
 the trainer's update is read against.
-Settings are timed interleaved (A, B, A, B, ...) and medians reported, since this machine's
-speed drifts. Writes ``experiments/results/bench_cycle.md`` and ``.json``.
+Settings are timed interleaved (A, B, B, A, ...: the order rotated every repeat) and medians
+reported, since this machine's speed drifts. Writes ``experiments/results/bench_cycle.md`` and
+``.json``.
 """
 
 from __future__ import annotations
 
-import os
-
-# A second host device, for the overlap=true rows (the others run on the first only).
-os.environ.setdefault("JAX_NUM_CPU_DEVICES", "2")
-
-import argparse
-import json
-import platform
-import statistics
-import time
-from pathlib import Path
-
+import harness
 import jax
 import jax.numpy as jnp
 import optax
 
-from rdher_jax import executor
+from rdher_jax import executor, startup
 from rdher_jax.config import parse_args, resolve
-
-HERE = Path(__file__).resolve().parent
 
 
 def cycle_fn(settings: list[str]):
@@ -130,27 +118,18 @@ def plain_learner(n_batches: int, hidden: int, layers: int, dtype=None,
     return fn, state, None
 
 
-def time_once(fns: dict, k) -> float:
-    cycle, ts, hp = fns[k]
-    t0 = time.perf_counter()
-    ts, m = cycle(ts, hp)
-    jax.block_until_ready((ts, m))
-    fns[k] = (cycle, ts, hp)
-    return time.perf_counter() - t0
-
-
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv: list[str] | None = None) -> None:
+    ap = harness.parser("bench_cycle.py", __doc__.splitlines()[0], repeats=20)
     ap.add_argument("--env", default="FetchPush")
     ap.add_argument("--preset", default="fast")
-    ap.add_argument("--repeats", type=int, default=20)
     ap.add_argument("--overlap-cycles", type=int, default=10,
                     help="cycles per timed epoch for the overlap rows (0: skip them)")
     ap.add_argument("--variants", nargs="*", default=[], metavar="NAME:K=V,K=V",
                     help="further settings to time beside the two, e.g. "
                     "fast+bf16:preset=fast,compute_dtype=bfloat16")
-    ap.add_argument("--out", default=str(HERE / "results" / "bench_cycle.md"))
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
+    # A second host device, for the overlap=true rows (the others run on the first only).
+    startup.setup(startup.Startup(host_devices=2))
 
     setups = {"default": [f"env={args.env}"], args.preset: [f"env={args.env}",
                                                              f"preset={args.preset}"]}
@@ -159,36 +138,34 @@ def main() -> None:
         if not name or not kvs:
             raise SystemExit(f"error: --variants takes NAME:key=value,key=value, got {v!r}")
         setups[name] = [f"env={args.env}", *kvs.split(",")]
-    fns, cfgs = {}, {}
+    bench, cfgs = harness.Bench(), {}  # one call per measurement, all in one rotated group
     for name, settings in setups.items():
         cfg, cycle, ts, hp = cycle_fn(settings)
         cfgs[name] = cfg
-        fns[(name, "full")] = (cycle, ts, hp)
+        bench.add(f"{name}/full", harness.donated(cycle, ts, hp))
         _, cycle1, ts1, hp1 = cycle_fn([*settings, "n_batches=1"])
-        fns[(name, "one")] = (cycle1, ts1, hp1)
+        bench.add(f"{name}/one", harness.donated(cycle1, ts1, hp1))
     plain = {}  # the plain learner at each setting's widths and dtype, timed alongside
     for name, cfg in cfgs.items():
-        shape = (cfg.n_batches, cfg.hidden, cfg.layers, cfg.compute_dtype)
+        shape = f"plain/{cfg.n_batches}x{cfg.layers}x{cfg.hidden}/{cfg.compute_dtype}"
         if shape not in plain.values():
             dt = None if cfg.compute_dtype == "float32" else jnp.bfloat16
-            fns[("plain", shape)] = plain_learner(cfg.n_batches, cfg.hidden, cfg.layers, dt)
+            bench.add(shape, harness.donated(*plain_learner(cfg.n_batches, cfg.hidden,
+                                                             cfg.layers, dt)))
         plain[name] = shape
     if args.overlap_cycles:
         for name, settings in setups.items():
             for ov in ("false", "true"):
                 _, ep, ts, hp = epoch_fn([*settings, f"overlap={ov}"], args.overlap_cycles)
-                fns[(name, f"epoch-overlap-{ov}")] = (ep, ts, hp)
-    times: dict = {k: [] for k in fns}
-    for _ in range(args.repeats):
-        for k in fns:
-            times[k].append(time_once(fns, k))
+                bench.add(f"{name}/epoch-overlap-{ov}", harness.donated(ep, ts, hp))
+    bench.run(args.repeats)
     rows = []
     for name, cfg in cfgs.items():
-        full = statistics.median(times[(name, "full")])
-        one = statistics.median(times[(name, "one")])
+        full = bench.med(f"{name}/full")
+        one = bench.med(f"{name}/one")
         upd = (full - one) / max(cfg.n_batches - 1, 1)
         steps = cfg.num_envs * 50
-        plain_upd = statistics.median(times[("plain", plain[name])]) / cfg.n_batches
+        plain_upd = bench.med(plain[name]) / cfg.n_batches
         rows.append({
             "setting": name, "settings": setups[name], "num_envs": cfg.num_envs,
             "n_batches": cfg.n_batches, "net": f"{cfg.layers}x{cfg.hidden}",
@@ -198,58 +175,48 @@ def main() -> None:
             "updates_per_s": cfg.n_batches / full, "plain_update_ms": 1e3 * plain_upd,
             "plain_updates_per_s": 1 / plain_upd,
         })
-    lines = [
-        f"# Where a {args.env} training cycle's time goes",
-        "",
-        f"`python experiments/bench_cycle.py --env {args.env} --preset {args.preset} --repeats "
-        f"{args.repeats}"
-        + (f" --overlap-cycles {args.overlap_cycles}" if args.overlap_cycles != 10 else "")
-        + (" --variants " + " ".join(args.variants) if args.variants else "") + "` on "
-        f"{platform.machine()} ({platform.processor() or 'CPU'}), "
-        f"{jax.device_count()} JAX device(s); medians of {args.repeats} interleaved repeats. "
+    cmd = harness.command("bench_cycle.py", argv)
+    h = harness.host()
+    cells = []
+    for r in rows:
+        net = r["net"] + (" bf16" if r["compute_dtype"] == "bfloat16" else "")
+        cells.append((r["setting"], f"{r['num_envs']} x 50", r["n_batches"], net,
+                      f"{r['cycle_ms']:.0f}",
+                      f"{r['rollout_ms']:.0f} ({100 * r['rollout_share']:.0f}%)",
+                      f"{r['update_ms']:.2f}", f"{r['plain_update_ms']:.2f}",
+                      f"{r['env_steps_per_s']:.0f}", f"{r['updates_per_s']:.0f}"))
+    blocks = [
+        f"`{cmd}` on {harness.machine(h)}, {jax.device_count()} JAX device(s); medians of "
+        f"{args.repeats} interleaved repeats (order rotated every repeat). "
         "'rollout' is the cycle at n_batches=1 (rollout, store, normaliser, one update); "
         "'update' is (cycle - rollout) / (n_batches - 1), one sampled gradient step; "
         "'plain update' is the plain XLA learner's (same widths and dtype, no replay), timed "
         "in the same rounds.",
-        "",
-        "| setting | envs x steps | updates | net | cycle ms | rollout ms (share) | update ms | "
-        "plain update ms | env-steps/s | updates/s |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        harness.table(["setting", "envs x steps", "updates", "net", "cycle ms",
+                       "rollout ms (share)", "update ms", "plain update ms", "env-steps/s",
+                       "updates/s"], cells),
     ]
-    for r in rows:
-        net = r["net"] + (" bf16" if r["compute_dtype"] == "bfloat16" else "")
-        lines.append(
-            f"| {r['setting']} | {r['num_envs']} x 50 | {r['n_batches']} | {net} | "
-            f"{r['cycle_ms']:.0f} | {r['rollout_ms']:.0f} ({100 * r['rollout_share']:.0f}%) | "
-            f"{r['update_ms']:.2f} | {r['plain_update_ms']:.2f} | "
-            f"{r['env_steps_per_s']:.0f} | {r['updates_per_s']:.0f} |")
     if args.overlap_cycles:
-        lines += [
-            "",
+        cells = []
+        for r in rows:
+            name = r["setting"]
+            seq = bench.med(f"{name}/epoch-overlap-false") / args.overlap_cycles
+            ovl = bench.med(f"{name}/epoch-overlap-true") / args.overlap_cycles
+            bound = max(r["rollout_ms"], r["cycle_ms"] - r["rollout_ms"])
+            r.update(overlap_cycles=args.overlap_cycles, seq_epoch_cycle_ms=1e3 * seq,
+                     overlap_epoch_cycle_ms=1e3 * ovl)
+            cells.append((name, f"{1e3 * seq:.0f}", f"{1e3 * ovl:.0f}", f"{seq / ovl:.2f}x",
+                          f"{bound:.0f}"))
+        blocks += [
             f"**Overlap** (`overlap=true`): an epoch of {args.overlap_cycles} cycles and one test "
             "episode as the trainer runs it, per cycle, sequential against overlapped (the "
             "rollout on a second host device while the learner trains; "
             "`rdher_jax.executor.OverlapEpoch`), timed in the same interleaved rounds.",
-            "",
-            "| setting | sequential ms / cycle | overlap ms / cycle | speed-up | "
-            "bound: max(rollout, updates) ms |",
-            "|---|---|---|---|---|",
+            harness.table(["setting", "sequential ms / cycle", "overlap ms / cycle", "speed-up",
+                           "bound: max(rollout, updates) ms"], cells),
         ]
-        for r in rows:
-            name = r["setting"]
-            seq = statistics.median(times[(name, "epoch-overlap-false")]) / args.overlap_cycles
-            ovl = statistics.median(times[(name, "epoch-overlap-true")]) / args.overlap_cycles
-            bound = max(r["rollout_ms"], r["cycle_ms"] - r["rollout_ms"])
-            r.update(overlap_cycles=args.overlap_cycles, seq_epoch_cycle_ms=1e3 * seq,
-                     overlap_epoch_cycle_ms=1e3 * ovl)
-            lines.append(f"| {name} | {1e3 * seq:.0f} | {1e3 * ovl:.0f} | {seq / ovl:.2f}x | "
-                         f"{bound:.0f} |")
-    text = "\n".join(lines) + "\n"
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(text)
-    out.with_suffix(".json").write_text(json.dumps(rows, indent=1))
-    print(text)
+    harness.write_results(args.out, f"Where a {args.env} training cycle's time goes", blocks,
+                          {"repeats": args.repeats, "rows": rows}, command=cmd, host=h)
 
 
 if __name__ == "__main__":

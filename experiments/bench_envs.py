@@ -30,7 +30,8 @@ What it measures:
     python experiments/bench_envs.py              # ~10-12 min on 2 cores
     python experiments/bench_envs.py --quick      # smoke run: ~1 min with --no-mjx, ~2 min without
 
-It writes ``experiments/results/bench_envs.md`` and a JSON file beside it (``--out``).
+It writes ``experiments/results/bench_envs.md`` and a JSON file beside it (``--out``), the
+MJX children with their XLA flags in their environment and their host devices through start-up.
 """
 
 from __future__ import annotations
@@ -40,7 +41,6 @@ import json
 import math
 import os
 import platform
-import shlex
 import shutil
 import statistics
 import subprocess
@@ -51,19 +51,18 @@ from collections.abc import Callable, Sequence
 from datetime import datetime, timezone
 from typing import Any
 
+import harness
 import numpy as np
 
 from rdher_jax.tasks import PAPER_TASKS
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-DEFAULT_OUT = os.path.join(HERE, "results", "bench_envs.md")
 TASKS = PAPER_TASKS
 SCENES = ("original", "mjx")
 REF_TASK = "FetchPush"
 EPISODE = 50
 TARGET = 2.5  # the mujoco backend, original scene, vs gymnasium's FetchPush env.step
 FUSION_OFF = "--xla_cpu_use_fusion_emitters=false"
-TWO_DEVICES = "--xla_force_host_platform_device_count=2"
 WORKER_MARK = "BENCH_ENVS_MJX_RESULT "
 
 
@@ -109,17 +108,6 @@ class Timed:
         return float(np.mean(gaps)) * 1e6 if gaps else float("nan")
 
 
-def cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
-
-
 def versions() -> dict[str, str]:
     from importlib import metadata
 
@@ -134,14 +122,18 @@ def versions() -> dict[str, str]:
 
 
 def hardware() -> dict[str, Any]:
+    """The host (``harness.host``) as the report reads it, with this script's package list
+    (gymnasium and numpy too) and the main process's XLA flags."""
+    h = harness.host()
     return {
-        "cpu": cpu_model(),
-        "logical_cpus": os.cpu_count(),
-        "usable_cpus": len(os.sched_getaffinity(0)),
+        "cpu": h["processor"] or "unknown",
+        "logical_cpus": h["cpu_count"],
+        "usable_cpus": h["affinity"],
         "platform": platform.platform(),
-        "loadavg_start": list(os.getloadavg()),
+        "loadavg_start": h["loadavg"],
         "versions": versions(),
         "xla_flags": os.environ.get("XLA_FLAGS", ""),
+        "host": h,
     }
 
 
@@ -335,6 +327,7 @@ def callback_round_trip_us(be, batch: int, length: int = 200, repeats: int = 5) 
     """One trivial ``pure_callback`` per scan step, with the env step's shapes and dtypes."""
     import jax
     import jax.numpy as jnp
+
     from rdher_jax.envs.physics import RAW_SIZE
 
     raw = np.zeros((batch, RAW_SIZE), np.float32)
@@ -402,6 +395,7 @@ def bare_mjbatch(setup, batch: int, threads: int) -> Callable[[int], float]:
     no forward, no readout. Returns a function of n_steps giving microseconds per batched step."""
     import mjbatch
     import mujoco
+
     from rdher_jax.envs.physics import MOCAP_QUAT_DELTA, N_SUBSTEPS
 
     s = setup
@@ -562,10 +556,15 @@ def count_files(path: str) -> int:
 
 
 def mjx_worker(cfg: dict) -> dict:
-    """Run in a fresh process: XLA_FLAGS is read once, when JAX starts."""
-    os.environ["XLA_FLAGS"] = cfg["flags"]
+    """Run in a fresh process (``run_mjx`` puts the flags in its ``XLA_FLAGS``: read once, when
+    JAX starts); its host devices through start-up."""
+    from rdher_jax import startup
+
+    startup.setup(startup.Startup(host_devices=cfg["devices"], ffi=False, compile_cache=False))
     import jax
 
+    # This run's own cache, every compilation kept: cold and warm compiles are what is measured.
+    jax.config.update("jax_enable_compilation_cache", True)
     jax.config.update("jax_compilation_cache_dir", cfg["cache_dir"])
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     from rdher_jax import make_env
@@ -623,7 +622,7 @@ def mjx_configs(batches: Sequence[int], quick: bool) -> list[dict]:
     for b in batches:
         if b >= 2 and b % 2 == 0:
             cfgs.append({"name": "fusion emitters off, 2 host devices, batch sharded",
-                         "flags": f"{FUSION_OFF} {TWO_DEVICES}", "batch": b, "steps": steps(b),
+                         "flags": FUSION_OFF, "batch": b, "steps": steps(b),
                          "devices": 2, "repeats": 3})
     return cfgs
 
@@ -636,7 +635,8 @@ def run_mjx(cfgs: list[dict], cache_dir: str, timeout: float) -> list[dict]:
         cmd = [sys.executable, os.path.abspath(__file__), "--mjx-worker", json.dumps(cfg)]
         t0 = time.perf_counter()
         try:
-            p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+            p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout,
+                               env={**os.environ, "XLA_FLAGS": cfg["flags"]})
         except subprocess.TimeoutExpired:
             results.append({**cfg, "error": f"timed out after {timeout:.0f} s"})
             print(f"    timed out after {timeout:.0f} s", flush=True)
@@ -661,12 +661,11 @@ def fmt_rate(x: float) -> str:
     return f"{x:,.0f}" if x >= 100 else f"{x:.1f}"
 
 
-def write_report(res: dict, path: str) -> str:
+def report(res: dict) -> str:
+    """The results page below its title."""
     hw, ref, sp = res["hardware"], res["gym_ref_rate"], res["parallel_speedups"]
     v = hw["versions"]
     lines = [
-        "# Env-step throughput: gymnasium-robotics, the `mujoco` backend, MJX on CPU",
-        "",
         f"Produced by `{res['command']}` on {res['date']} ({res['wall_s'] / 60:.1f} min).",
         "",
         f"- Hardware: {hw['cpu']}, {hw['usable_cpus']} usable of {hw['logical_cpus']} logical "
@@ -819,13 +818,7 @@ def write_report(res: dict, path: str) -> str:
                 f"| {r['lower_s']:.1f} | {r['compile_s']:.1f} | {r['cache']} "
                 f"| {fmt_rate(r['rate'])} | {r['rate'] / ref:.3f}x |"
             )
-    text = "\n".join(lines) + "\n"
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    with open(path, "w") as fh:
-        fh.write(text)
-    with open(os.path.splitext(path)[0] + ".json", "w") as fh:
-        json.dump(res, fh, indent=1)
-    return text
+    return "\n".join(lines)
 
 
 # ----------------------------------------------------------------------------- main
@@ -834,9 +827,9 @@ def parse_ints(text: str) -> list[int]:
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--quick", action="store_true",
-                   help="FetchPush only, batches 1 and 16, fewer repeats, one MJX configuration")
+    p = harness.parser("bench_envs.py", __doc__.splitlines()[0],
+                       quick="FetchPush only, batches 1 and 16, fewer repeats, one MJX "
+                       "configuration")
     p.add_argument("--tasks", default=None, help="comma-separated tasks (default: all four)")
     p.add_argument("--batches", default=None,
                    help="batch sizes for every task (default: 1,16; see --push-batches)")
@@ -853,7 +846,6 @@ def main(argv: Sequence[str] | None = None) -> None:
     p.add_argument("--cache-dir", default=None,
                    help="persistent JAX compilation cache for the MJX part (default: a fresh "
                         "temporary directory, so the first compile of each setting is cold)")
-    p.add_argument("--out", default=DEFAULT_OUT, help="markdown output; JSON written beside it")
     p.add_argument("--mjx-worker", default=None, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
 
@@ -861,6 +853,9 @@ def main(argv: Sequence[str] | None = None) -> None:
         print(WORKER_MARK + json.dumps(mjx_worker(json.loads(args.mjx_worker))), flush=True)
         return
 
+    from rdher_jax import startup
+
+    startup.setup(startup.Startup())  # the mujoco backend's FFI handlers, built in the background
     t_start = time.perf_counter()
     quick = args.quick
     tasks = args.tasks.split(",") if args.tasks else ([REF_TASK] if quick else list(TASKS))
@@ -882,8 +877,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     bd_batches = parse_ints(args.breakdown_batches) if args.breakdown_batches else bd_default
 
     res: dict[str, Any] = {
-        "command": "python " + " ".join(shlex.quote(a) for a in
-                                        [os.path.relpath(__file__)] + list(argv or sys.argv[1:])),
+        "command": harness.command("bench_envs.py", argv),
         "date": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
         "hardware": hardware(),
     }
@@ -956,7 +950,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     res["loadavg_end"] = list(os.getloadavg())
     res["wall_s"] = time.perf_counter() - t_start
     print()
-    print(write_report(res, args.out))
+    harness.write_results(args.out, "Env-step throughput: gymnasium-robotics, the `mujoco` "
+                          "backend, MJX on CPU", [report(res)], res)
 
 
 if __name__ == "__main__":

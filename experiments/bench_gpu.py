@@ -39,6 +39,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
+import harness  # noqa: E402
 from bench_envs import versions  # noqa: E402
 from bench_learning import first_hit  # noqa: E402
 
@@ -49,8 +50,13 @@ STAGES = ("reach", "push", "rdher", "env")
 
 def env_worker(batches: list[int], deadline: float) -> None:
     """Stage 1, in its own process: one JSON line per batch size."""
+    from rdher_jax import startup
+
+    # No persistent compilation cache: the compile times are among the figures.
+    startup.setup(startup.Startup(ffi=False, compile_cache=False))
     import jax
     from bench_envs import batch_keys, compile_timed, make_rollout
+
     from rdher_jax.envs import make_env
 
     env = make_env("FetchPush", backend="mjx", auto_reset=False)
@@ -114,13 +120,12 @@ def gpu_info() -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = harness.parser("bench_gpu.py", __doc__.split("\n\n")[0], out=DEFAULT_OUT)
+    ap.formatter_class = argparse.RawDescriptionHelpFormatter
     ap.add_argument("--budget", type=float, default=540.0, help="seconds for all stages")
     ap.add_argument("--batches", default="1024,4096,16384", help="stage env: batch sizes")
     ap.add_argument("--stages", default=",".join(STAGES), help=f"of {','.join(STAGES)}")
     ap.add_argument("--num-envs", type=int, default=4096, help="push and rdher: num_envs")
-    ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
     ap.add_argument("--env-worker", default=None, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     if a.env_worker is not None:
@@ -193,15 +198,17 @@ def main(argv: list[str] | None = None) -> int:
         (a.out.with_suffix(".json")).write_text(json.dumps(result, indent=1) + "\n")
     log.close()
     shutil.rmtree(runs, ignore_errors=True)
-    a.out.write_text(render(result), encoding="utf-8")
-    print(render(result))
+    # The host is nvidia-smi's and the versions' (gpu_info): harness.host would start JAX in
+    # this process, on the GPU the stages need.
+    harness.write_results(a.out, "The trainer on a GPU (`experiments/bench_gpu.py`)",
+                          [render(result)], result)
     return 0
 
 
 def render(res: dict) -> str:
+    """The results page below its title."""
     hw = res["hardware"]
-    lines = ["# The trainer on a GPU (`experiments/bench_gpu.py`)", "",
-             f"GPU: {hw.get('gpu')}; {hw.get('cpu_count')} CPU cores; Python {hw.get('python')}; "
+    lines = [f"GPU: {hw.get('gpu')}; {hw.get('cpu_count')} CPU cores; Python {hw.get('python')}; "
              + ", ".join(f"{k} {v}" for k, v in hw["versions"].items()) + "; "
              f"budget {res['budget_s']:.0f} s.", ""]
     st = res["stages"]
@@ -232,7 +239,7 @@ def render(res: dict) -> str:
               f"{float(last['wall_time']):.0f}") if last else "none"
         lines.append(f"| {s} | `{r['command']}` | {r['rc']} | {r['process_s']} | "
                      f"{r.get('epochs')} | {rc} | {ls} |")
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":

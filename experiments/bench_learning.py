@@ -24,6 +24,8 @@ import sys
 import time
 from pathlib import Path
 
+import harness
+
 from rdher_jax.config import SUCCESS_TOLERANCE
 
 THRESHOLDS = (0.5, 0.9)
@@ -210,15 +212,7 @@ def main() -> None:
         return
     if not args.name:
         ap.error("--name is required (or --summary)")
-    limits = None
-    if args.limits_script and not args.report_only:
-        import tempfile
-
-        with tempfile.NamedTemporaryFile(suffix=".json") as f:
-            p = subprocess.run([sys.executable, args.limits_script, "--json", f.name],
-                               capture_output=True, text=True, check=True)
-            limits = {"script": Path(args.limits_script).name, "table": p.stdout.strip(),
-                      "figures": json.loads(Path(f.name).read_text() or "{}")}
+    limits = None if args.report_only else harness.machine_limits(args.limits_script)
     results = {}
     for seed in args.seeds:
         run_dir = Path(args.runs_dir) / f"{args.name}-s{seed}"

@@ -11,7 +11,7 @@ actions) and a *learner* (``n_batches`` Adam steps of a 2x256 critic-sized MLP o
 - ``one program``: both in one jitted function, the two scans data-independent;
 - ``two programs, one device``: two jitted calls dispatched back to back, learner first;
 - ``two programs, two devices``: the same, the learner on host device 0 and the rollout on
-  host device 1 (``--xla_force_host_platform_device_count=2``, set by this script).
+  host device 1 (two host devices, which this script asks start-up for).
 
 "Overlapped" is max(alone) / together: 1.0 when the pair costs as much as its slower half,
 max/sum when it costs the sum. Calls are interleaved and medians reported (this machine's speed
@@ -20,25 +20,13 @@ drifts). Writes ``experiments/results/bench_overlap.md`` and ``.json``.
 
 from __future__ import annotations
 
-import os
+import harness
+import jax
+import jax.numpy as jnp
+import optax
 
-os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") +
-                           " --xla_force_host_platform_device_count=2").strip()
-
-import argparse  # noqa: E402
-import json  # noqa: E402
-import platform  # noqa: E402
-import statistics  # noqa: E402
-import time  # noqa: E402
-from pathlib import Path  # noqa: E402
-
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
-import optax  # noqa: E402
-
-from envs import make_env  # noqa: E402
-
-HERE = Path(__file__).resolve().parent
+from rdher_jax import startup
+from rdher_jax.envs import make_env
 
 
 def make_rollout(env_name: str, num_envs: int):
@@ -89,23 +77,15 @@ def make_learner(n_batches: int, batch: int = 256, hidden: int = 256, obs: int =
     return init, learn
 
 
-def call_times(fn, repeats: int) -> list[float]:
-    out = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn())
-        out.append(time.perf_counter() - t0)
-    return out
-
-
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv: list[str] | None = None) -> None:
+    ap = harness.parser("bench_overlap.py", __doc__.splitlines()[0], repeats=11)
     ap.add_argument("--env", default="FetchPush")
     ap.add_argument("--num-envs", type=int, default=1)
     ap.add_argument("--n-batches", type=int, default=40)
-    ap.add_argument("--repeats", type=int, default=11)
-    ap.add_argument("--out", type=Path, default=HERE / "results" / "bench_overlap.md")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
+
+    # A second host device for the two-device case: set before anything touches a device.
+    startup.setup(startup.Startup(host_devices=2))
 
     d0, d1 = jax.devices()[:2]
     rollout = jax.jit(make_rollout(args.env, args.num_envs))
@@ -130,13 +110,11 @@ def main() -> None:
         "two programs, one device": lambda: (learn_j(carry0, k_learn0), rollout(k_roll0)),
         "two programs, two devices": lambda: (learn_j(carry0, k_learn0), rollout(k_roll1)),
     }
-    for fn in cases.values():  # compile and warm up
-        jax.block_until_ready(fn())
-    times: dict[str, list[float]] = {k: [] for k in cases}
-    for _ in range(args.repeats):  # interleaved
-        for name, fn in cases.items():
-            times[name] += call_times(fn, 1)
-    med = {k: statistics.median(v) for k, v in times.items()}
+    bench = harness.Bench()  # one call per measurement
+    for name, fn in cases.items():
+        bench.add(name, fn)
+    bench.run(args.repeats)
+    med = {k: bench.med(k) for k in cases}
     slower = max(med["rollout alone"], med["learner alone"])
     total = med["rollout alone"] + med["learner alone"]
     rows = []
@@ -145,36 +123,20 @@ def main() -> None:
         rows.append({"case": name, "median_ms": 1000 * t,
                      "overlapped": slower / t if together else None,
                      "of_sum": t / total if together else None})
-    info = {"env": args.env, "num_envs": args.num_envs, "n_batches": args.n_batches,
-            "repeats": args.repeats, "jax": jax.__version__, "cpu_count": os.cpu_count(),
-            "affinity": len(os.sched_getaffinity(0)), "machine": platform.machine(),
-            "processor": platform.processor(), "rows": rows}
-    lines = [
-        "# Host physics and the learner at the same time?",
-        "",
-        f"`python experiments/bench_overlap.py` ({args.env}, rollout: {args.num_envs} env(s) x 50 "
-        f"native steps; learner: {args.n_batches} Adam steps, 2x256 MLP, batch 256); "
-        f"{info['affinity']} usable of {info['cpu_count']} CPUs, JAX {jax.__version__}; "
-        f"median of {args.repeats}, interleaved.",
-        "",
-        "| case | median (ms) | max(alone) / this | this / sum(alone) |",
-        "|---|---|---|---|",
-    ]
-    for r in rows:
-        ov = "-" if r["overlapped"] is None else f"{r['overlapped']:.2f}"
-        of = "-" if r["of_sum"] is None else f"{r['of_sum']:.2f}"
-        lines.append(f"| {r['case']} | {r['median_ms']:.1f} | {ov} | {of} |")
-    lines += [
-        "",
+    h = harness.host()
+    cells = [(r["case"], f"{r['median_ms']:.1f}",
+              "-" if r["overlapped"] is None else f"{r['overlapped']:.2f}",
+              "-" if r["of_sum"] is None else f"{r['of_sum']:.2f}") for r in rows]
+    cmd = harness.command("bench_overlap.py", argv)
+    harness.write_results(args.out, "Host physics and the learner at the same time?", [
+        f"`{cmd}` ({args.env}, rollout: {args.num_envs} env(s) x 50 native steps; learner: "
+        f"{args.n_batches} Adam steps, 2x256 MLP, batch 256); {harness.machine(h)}; median of "
+        f"{args.repeats}, interleaved (order rotated every repeat).",
+        harness.table(["case", "median (ms)", "max(alone) / this", "this / sum(alone)"], cells),
         "1.00 in the third column: the pair costs its slower half (full overlap); "
         "this / sum = 1.00: they ran one after the other.",
-        "",
-    ]
-    text = "\n".join(lines)
-    print(text)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text, encoding="utf-8")
-    args.out.with_suffix(".json").write_text(json.dumps(info, indent=1) + "\n", encoding="utf-8")
+    ], {"env": args.env, "num_envs": args.num_envs, "n_batches": args.n_batches,
+        "repeats": args.repeats, "rows": rows}, command=cmd, host=h)
 
 
 if __name__ == "__main__":

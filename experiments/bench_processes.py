@@ -9,18 +9,17 @@ cycles per epoch), each from process start to exit, side by side in one call:
 - ``1 process, 1 core``: ``taskset -c 0``, one JAX device;
 - ``2 processes, 1 core each``: ``rdher_jax.sweep ... coordinator= num_processes=2``, process i
   pinned to core i (``taskset -c i``), one device each: what two machines would do, shrunk;
-- ``1 process, 2 cores, 2 devices``: ``--xla_force_host_platform_device_count=2``.
+- ``1 process, 2 cores, 2 devices``: two host devices (``JAX_NUM_CPU_DEVICES=2`` in the
+  child's environment, the option start-up sets).
 
-Writes ``experiments/results/bench_processes.md`` and ``.json`` (with ``machine_limits``'s
-figures when ``../shared/bench/machine_limits.py`` exists). Needs an otherwise idle machine.
+The layouts are interleaved (the order rotated every repeat) and medians reported. Writes
+``experiments/results/bench_processes.md`` and ``.json`` (with the machine's ceilings from
+``--limits-script``). Needs an otherwise idle machine.
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
-import platform
 import shutil
 import socket
 import statistics
@@ -30,8 +29,9 @@ import tempfile
 import time
 from pathlib import Path
 
-HERE = Path(__file__).resolve().parent
-OUT = HERE / "results"
+import harness
+
+LAYOUTS = ("1 process, 1 core", "2 processes, 1 core each", "1 process, 2 cores, 2 devices")
 
 
 def sweep_args(runs: int, epochs: int) -> list[str]:
@@ -44,10 +44,12 @@ def sweep_args(runs: int, epochs: int) -> list[str]:
 
 
 def env(devices: int = 1) -> dict:
+    """A child's environment: CPU only, its host devices as start-up reads them."""
     e = {**os.environ, "JAX_PLATFORMS": "cpu"}
     e.pop("XLA_FLAGS", None)
+    e.pop("JAX_NUM_CPU_DEVICES", None)
     if devices > 1:
-        e["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={devices}"
+        e["JAX_NUM_CPU_DEVICES"] = str(devices)
     return e
 
 
@@ -68,55 +70,59 @@ def timed(cmds: list[list[str]], envs: list[dict]) -> float:
     return time.perf_counter() - t0
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv: list[str] | None = None) -> None:
+    ap = harness.parser("bench_processes.py", __doc__.splitlines()[0], repeats=1, limits=True)
     ap.add_argument("--runs", type=int, default=4)
     ap.add_argument("--epochs", type=int, default=3)
-    ap.add_argument("--repeats", type=int, default=1)
-    ap.add_argument("--out", type=Path, default=OUT)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
+    from rdher_jax import startup
+
+    # This process only starts the sweeps (and reads the host): nothing to build.
+    startup.setup(startup.Startup(ffi=False, compile_cache=False))
+    limits = harness.machine_limits(args.limits_script)
     py = [sys.executable, "-m", "rdher_jax.sweep", *sweep_args(args.runs, args.epochs)]
     tmp = Path(tempfile.mkdtemp(prefix="bench_processes-"))
-    res: dict[str, list[float]] = {"1 process, 1 core": [], "2 processes, 1 core each": [],
-                                   "1 process, 2 cores, 2 devices": []}
-    try:
-        for r in range(args.repeats):
-            d = tmp / f"one{r}"
-            res["1 process, 1 core"].append(
-                timed([["taskset", "-c", "0", *py, f"sweep_dir={d}"]], [env()]))
-            d = tmp / f"two{r}"
+    count = iter(range(1 << 30))  # a fresh sweep directory per measurement
+
+    def measure(layout: str) -> float:
+        d = tmp / f"sweep{next(count)}"
+        if layout == LAYOUTS[0]:
+            return timed([["taskset", "-c", "0", *py, f"sweep_dir={d}"]], [env()])
+        if layout == LAYOUTS[1]:
             port = free_port()
             cmds = [["taskset", "-c", str(i), *py, f"sweep_dir={d}",
                      f"coordinator=127.0.0.1:{port}", "num_processes=2", f"process_id={i}"]
                     for i in range(2)]
-            res["2 processes, 1 core each"].append(timed(cmds, [env(), env()]))
-            d = tmp / f"dev{r}"
-            res["1 process, 2 cores, 2 devices"].append(
-                timed([[*py, f"sweep_dir={d}"]], [env(2)]))
+            return timed(cmds, [env(), env()])
+        return timed([[*py, f"sweep_dir={d}"]], [env(2)])
+
+    try:
+        res = harness.interleave(LAYOUTS, args.repeats, measure)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    base = statistics.median(res["1 process, 1 core"])
-    lines = [
-        "# One sweep in one process against two processes on this machine", "",
-        f"`python experiments/bench_processes.py --runs {args.runs} --epochs {args.epochs} "
-        f"--repeats {args.repeats}` on {platform.machine()} ({os.cpu_count()} CPU cores): "
-        f"FetchReach RDHER, {args.runs} runs, {args.epochs} epochs of 10 cycles at the paper's "
-        "learner. Wall clock from process start to exit (imports, env build and compilation "
-        "included), median of the repeats.", "",
-        "| layout | wall clock (s) | against 1 process, 1 core |", "|---|---|---|"]
-    for k, v in res.items():
-        m = statistics.median(v)
-        lines.append(f"| {k} | {m:.1f} | {base / m:.2f}x |")
-    lines += ["", "On k hosts each process steps N/k of the runs, so the epochs take about 1/k "
-              "of the time; start-up, compilation (every process compiles the same program) and "
-              "the exchange between epochs (each epoch's metrics, and the learner states when "
-              "a run reaches a new best) do not shrink."]
-    text = "\n".join(lines) + "\n"
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "bench_processes.md").write_text(text)
-    (args.out / "bench_processes.json").write_text(json.dumps(
-        {"runs": args.runs, "epochs": args.epochs, "seconds": res}, indent=1) + "\n")
-    print(text)
+    base = statistics.median(res[LAYOUTS[0]])
+    cmd = harness.command("bench_processes.py", argv)
+    h = harness.host()
+    cells = [(k, f"{statistics.median(v):.1f}", f"{base / statistics.median(v):.2f}x")
+             for k, v in res.items()]
+    blocks = [
+        f"`{cmd}` on {harness.machine(h)}: FetchReach RDHER, {args.runs} runs, {args.epochs} "
+        "epochs of 10 cycles at the paper's learner. Wall clock from process start to exit "
+        "(imports, env build and compilation included), median of the repeats (layouts "
+        "interleaved, order rotated every repeat).",
+        harness.table(["layout", "wall clock (s)", "against 1 process, 1 core"], cells),
+        "On k hosts each process steps N/k of the runs, so the epochs take about 1/k "
+        "of the time; start-up, compilation (every process compiles the same program) and "
+        "the exchange between epochs (each epoch's metrics, and the learner states when "
+        "a run reaches a new best) do not shrink.",
+    ]
+    if limits:
+        blocks += [f"The machine's ceilings, measured just before the runs (`python "
+                   f"{limits['script']}`):", ["```", limits["table"], "```"]]
+    harness.write_results(args.out, "One sweep in one process against two processes on this "
+                          "machine", blocks, {"runs": args.runs, "epochs": args.epochs,
+                                              "seconds": res, "machine_limits": limits},
+                          command=cmd, host=h)
 
 
 if __name__ == "__main__":

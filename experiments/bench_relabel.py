@@ -4,7 +4,7 @@ cycle's learner work (40 x sample + DDPG update) for HER, DHER/RDHER and CHER on
     python experiments/bench_relabel.py                        # about 3 minutes on 2 cores
     python experiments/bench_relabel.py --quick                # smoke run
     python experiments/bench_relabel.py --sizes 1e4 1e5 --repeats 3 --cycle-size 1e5
-    python experiments/bench_relabel.py --limits PATH          # also run a machine-limits script
+    python experiments/bench_relabel.py --limits-script PATH   # also run a machine-limits script
 
 Buffers are synthetic, with the FetchPush dimensions (obs 25, goal 3, action 4, T = 50): desired
 goals are static per episode, drawn in a 30 cm box on the table; the object (achieved goal)
@@ -20,16 +20,14 @@ ratios. Writes ``experiments/results/bench_relabel.md`` and ``.json``.
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
 import os
-import platform
-import statistics
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+import harness
 
 HERE = Path(__file__).resolve().parent
 OBS, GOAL, ACT, T = 25, 3, 4, 50  # FetchPush
@@ -222,77 +220,6 @@ def tree_bytes(tree) -> int:
     return sweep_tree_bytes(tree)
 
 
-class Bench:
-    """Interleaved timing of jitted functions: each measurement runs a function ``inner`` times
-    (calibrated to about ``min_time`` seconds) and keeps the time per call. Functions are timed
-    in groups; in each repeat every group runs once, in an order rotated by the repeat, so that
-    variants compared with each other (one group) are measured within seconds of each other."""
-
-    def __init__(self, min_time: float):
-        self.min_time = min_time
-        self.fns: dict[str, tuple] = {}
-        self.groups: dict[str, list[str]] = {}
-        self.inner: dict[str, int] = {}
-        self.compile_s: dict[str, float] = {}
-        self.times: dict[str, list[float]] = {}
-
-    def add(self, name: str, f, *args, per: int = 1, group: str = "main") -> None:
-        """``per``: calls of the timed unit inside one call of ``f`` (times are divided by it)."""
-        import jax
-
-        t0 = time.perf_counter()
-        jax.block_until_ready(f(*args))
-        self.compile_s[name] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        jax.block_until_ready(f(*args))
-        one = time.perf_counter() - t0
-        self.inner[name] = max(1, math.ceil(self.min_time / max(one, 1e-6)))
-        self.fns[name] = (f, args, per)
-        self.groups.setdefault(group, []).append(name)
-        self.times[name] = []
-        print(f"  compiled {name}: {self.compile_s[name]:.1f} s, one call {one * 1e3:.2f} ms",
-              flush=True)
-
-    def run(self, repeats: int) -> None:
-        import jax
-
-        for r in range(repeats):
-            for names in self.groups.values():
-                order = names[r % len(names):] + names[:r % len(names)]
-                for name in order:
-                    f, args, per = self.fns[name]
-                    n = self.inner[name]
-                    t0 = time.perf_counter()
-                    for _ in range(n):
-                        jax.block_until_ready(f(*args))
-                    self.times[name].append((time.perf_counter() - t0) / n / per)
-            print(f"  repeat {r + 1}/{repeats} done", flush=True)
-
-    def med(self, name: str) -> float:
-        return statistics.median(self.times[name])
-
-    def best(self, name: str) -> float:
-        return min(self.times[name])
-
-    def ratios(self, num: str | list[str], den: str) -> list[float]:
-        """Per repeat: sum of the times of ``num`` / time of ``den``."""
-        num = [num] if isinstance(num, str) else num
-        return [sum(self.times[n][r] for n in num) / self.times[den][r]
-                for r in range(len(self.times[den]))]
-
-    def ratio(self, num: str | list[str], den: str) -> float:
-        """Median over repeats of the paired ratio."""
-        return statistics.median(self.ratios(num, den))
-
-    def ratio_quartiles(self, num: str | list[str], den: str) -> tuple[float, float]:
-        """First and third quartiles of the paired ratios over repeats."""
-        rs = self.ratios(num, den)
-        if len(rs) < 2:
-            return rs[0], rs[0]
-        q = statistics.quantiles(rs, n=4, method="inclusive")
-        return q[0], q[2]
-
-
 def matching_cost(sizes: list[int], repeats: int, min_time: float, args) -> tuple[dict, dict]:
     """Part 1: DHER update and sample against the buffer size, and DHERState's memory."""
     import jax
@@ -302,7 +229,7 @@ def matching_cost(sizes: list[int], repeats: int, min_time: float, args) -> tupl
     from rdher_jax.program import hparams_from_config
     from rdher_jax.relabel import DHER, make_relabeller
 
-    bench = Bench(min_time)
+    bench = harness.Bench(min_time)
     setups, info = {}, {}
     for i, size in enumerate(sizes):
         cfg = make_cfg("dher", size)
@@ -556,7 +483,7 @@ def cycle_cost(size: int, repeats: int, min_time: float, args, setups: dict) -> 
         return jnp.cumsum(histogram(keys, new), dtype=jnp.int32)[:-1]
 
     key, step0 = jax.random.PRNGKey(3), jnp.int32(123)
-    bench = Bench(min_time)
+    bench = harness.Bench(min_time)
     # Group "main": what the per-algorithm ratios and the suggested DHER changes compare.
     for a in algos:
         bench.add(f"learn/{a}", make_learn(rls[a], agent), ds, states[a], buf, hps[a], key, step0)
@@ -656,14 +583,6 @@ def library_version() -> str:
                                if changed else ", unmodified")
 
 
-def run_limits(path: str) -> dict:
-    t0 = time.perf_counter()
-    p = subprocess.run([sys.executable, path], capture_output=True, text=True, timeout=300)
-    table = [ln for ln in p.stdout.splitlines() if ln.strip()]
-    return {"script": Path(path).name, "seconds": time.perf_counter() - t0, "table": table,
-            "returncode": p.returncode}
-
-
 def fmt_ms(s: float) -> str:
     return f"{s * 1e3:.3g}" if s * 1e3 < 100 else f"{s * 1e3:.0f}"
 
@@ -679,8 +598,7 @@ def quart(q) -> str:
 def report(args, cmd: str, info: dict) -> str:
     p1, p2 = info["matching"], info["cycle"]
     rows = p1["rows"]
-    L = ["# Relabelling benchmark", "",
-         f"`{cmd}` on {info['machine']} (JAX {info['jax']}, {info['jax_backend']}; rdher_jax at "
+    L = [f"`{cmd}` on {info['machine']} (JAX {info['jax']}, {info['jax_backend']}; rdher_jax at "
          f"{info['library']}). Total run "
          f"time {info['total_s']:.0f} s. Other processes shared the 2 cores (load average "
          f"{info['loadavg_start'][0]:.1f} at the start, {info['loadavg_end'][0]:.1f} at the "
@@ -804,7 +722,7 @@ def report(args, cmd: str, info: dict) -> str:
     if info.get("limits"):
         lim = info["limits"]
         L += ["", f"## Machine limits (`{lim['script']}`, run just before the measurements)", "",
-              "```", *lim["table"], "```"]
+              "```", lim["table"], "```"]
     return "\n".join(L) + "\n"
 
 
@@ -919,13 +837,13 @@ def reading(info: dict) -> list[str]:
     return out
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv: list[str] | None = None) -> None:
+    ap = harness.parser("bench_relabel.py", __doc__.splitlines()[0], repeats=9,
+                        quick="smoke run: small sizes, 2 repeats", limits=True)
     ap.add_argument("--sizes", type=float, nargs="+", default=[1e4, 1e5, 1e6],
                     help="buffer sizes (transitions) for the matching cost")
     ap.add_argument("--cycle-size", type=float, default=1e6,
                     help="buffer size (transitions) for the per-algorithm cycle cost")
-    ap.add_argument("--repeats", type=int, default=9, help="interleaved repeats (median)")
     ap.add_argument("--min-time", type=float, default=0.3,
                     help="seconds per measurement (calls are repeated to reach it)")
     ap.add_argument("--update-loop", type=int, default=8,
@@ -935,28 +853,24 @@ def main() -> None:
     ap.add_argument("--success", type=float, default=0.3, help="share of successful episodes")
     ap.add_argument("--still", type=float, default=0.5,
                     help="share of failed episodes whose object never moves")
-    ap.add_argument("--limits", default=None,
-                    help="path of a machine-limits script to run first and record")
-    ap.add_argument("--quick", action="store_true", help="smoke run: small sizes, 2 repeats")
-    ap.add_argument("--out", default=str(HERE / "results" / "bench_relabel.md"))
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     if args.quick:
         args.sizes, args.cycle_size, args.repeats, args.min_time = [1e4, 5e4], 5e4, 2, 0.05
 
     t_start = time.perf_counter()
-    cmd = "python experiments/bench_relabel.py " + " ".join(
-        a if not a.startswith("/") else Path(a).name for a in sys.argv[1:])
-    limits = run_limits(args.limits) if args.limits else None
+    cmd = harness.command("bench_relabel.py", argv)
+    limits = harness.machine_limits(args.limits_script)
     if limits:
-        print("\n".join(limits["table"]), flush=True)
+        print(limits["table"], flush=True)
+    from rdher_jax import startup
 
-    import jax
-
+    startup.setup(startup.Startup())
     import rdher_jax.program  # noqa: F401
 
     # Import everything measured now, and record what was imported before measuring it.
 
     library = library_version()
+    h = harness.host()
     load0 = os.getloadavg()
     sizes = [int(s) for s in args.sizes]
     print("part 1: matching cost", flush=True)
@@ -964,10 +878,9 @@ def main() -> None:
     print("part 2: cycle cost", flush=True)
     p2 = cycle_cost(int(args.cycle_size), args.repeats, args.min_time, args, setups)
     info = {
-        "command": cmd,
-        "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs",
-        "jax_backend": jax.default_backend(),
-        "jax": jax.__version__,
+        "machine": f"{h['processor'] or h['machine']}, {h['cpu_count']} CPUs",
+        "jax_backend": h["jax_backend"],
+        "jax": h["versions"]["jax"],
         "library": library,
         "loadavg_start": load0,
         "loadavg_end": os.getloadavg(),
@@ -976,12 +889,8 @@ def main() -> None:
         "limits": limits,
         "total_s": time.perf_counter() - t_start,
     }
-    text = report(args, cmd, info)
-    print(text)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(text)
-    out.with_suffix(".json").write_text(json.dumps(info, indent=2, default=str))
+    text = report(args, cmd, info).rstrip("\n")
+    harness.write_results(args.out, "Relabelling benchmark", [text], info, command=cmd, host=h)
 
 
 if __name__ == "__main__":

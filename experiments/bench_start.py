@@ -16,24 +16,20 @@ reported too.
 
 Imports are warm in both (the OS's file cache holds the packages after the first run): only the
 compilation cache differs. Variants and modes are interleaved (A cold, A warm, B cold, B warm,
-A cold, ...) and medians reported, since this machine's speed drifts. Writes
+then A warm, B cold, B warm, A cold, ...: the order rotated every repeat) and medians reported,
+since this machine's speed drifts. Writes
 ``experiments/results/bench_start.md`` and ``.json``.
 """
 
 from __future__ import annotations
 
-import argparse
-import json
-import os
-import platform
 import shlex
 import statistics
 import tempfile
 from pathlib import Path
 
+import harness
 from bench_train import cold_start_to
-
-HERE = Path(__file__).resolve().parent
 
 
 def one_run(settings: list[str], cache: Path, threshold: float) -> dict:
@@ -43,35 +39,39 @@ def one_run(settings: list[str], cache: Path, threshold: float) -> dict:
             "env_steps": hit.get("env_steps"), "process_s": r["process_s"]}
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv: list[str] | None = None) -> None:
+    ap = harness.parser("bench_start.py", __doc__.splitlines()[0], repeats=5)
     ap.add_argument("--settings", nargs="*", default=[],
                     help="key=value settings of every run (default: none, the main job)")
     ap.add_argument("--variants", nargs="+", default=["", "overlap=true"],
                     help="each a space-separated key=value list added to --settings "
                     "('' : none)")
-    ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--threshold", type=float, default=0.95)
-    ap.add_argument("--out", default=str(HERE / "results" / "bench_start.md"))
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
+    from rdher_jax import startup
 
-    results: dict[tuple[str, str], list[dict]] = {}
+    # This process only starts and watches the runs (and reads the host): nothing to build.
+    startup.setup(startup.Startup(ffi=False, compile_cache=False))
+
     with tempfile.TemporaryDirectory(prefix="bench_start-") as tmp:
         work = Path(tmp)
         warm_cache = {}
         for v in args.variants:  # the warm caches, filled by an unmeasured run each
             warm_cache[v] = Path(tempfile.mkdtemp(prefix="warm-", dir=work))
             one_run([*args.settings, *v.split()], warm_cache[v], args.threshold)
-        for r in range(args.repeats):
-            for v in args.variants:
-                for mode in ("cold", "warm"):
-                    cache = (warm_cache[v] if mode == "warm"
-                             else Path(tempfile.mkdtemp(prefix="cold-", dir=work)))
-                    res = one_run([*args.settings, *v.split()], cache, args.threshold)
-                    results.setdefault((v, mode), []).append(res)
-                    print(f"[{r + 1}/{args.repeats}] {v or '(main job)'} {mode}: "
-                          f"{res['to_threshold_s']} s to {args.threshold}, "
-                          f"process {res['process_s']:.1f} s", flush=True)
+
+        def measure(case: tuple[str, str]) -> dict:
+            v, mode = case
+            cache = (warm_cache[v] if mode == "warm"
+                     else Path(tempfile.mkdtemp(prefix="cold-", dir=work)))
+            res = one_run([*args.settings, *v.split()], cache, args.threshold)
+            print(f"{v or '(main job)'} {mode}: {res['to_threshold_s']} s to "
+                  f"{args.threshold}, process {res['process_s']:.1f} s", flush=True)
+            return res
+
+        cases = [(v, mode) for v in args.variants for mode in ("cold", "warm")]
+        results = harness.interleave(cases, args.repeats, measure, lambda r: print(
+            f"repeat {r + 1}/{args.repeats} done", flush=True))
 
     def med(xs):
         xs = [x for x in xs if x is not None]
@@ -81,19 +81,7 @@ def main() -> None:
         [*(["--settings", *args.settings] if args.settings else []), "--variants",
          *(shlex.quote(v) for v in args.variants), "--repeats", str(args.repeats),
          "--threshold", str(args.threshold)])
-    lines = [
-        "# From process start to test success: the main job, cold and warm",
-        "",
-        f"`{cmd}` on {platform.machine()} ({platform.processor() or 'CPU'}), "
-        f"{os.cpu_count()} CPUs. `python -m rdher_jax.train {' '.join(args.settings)}` plus "
-        "the variant; seconds from starting the process to the first metrics.csv row with "
-        f"test success >= {args.threshold}, median of {args.repeats} (min-max). cold: an empty "
-        "compilation cache; warm: the cache a previous run filled.",
-        "",
-        "| variant | cache | to threshold (s) | min-max | reached at epoch | process (s) |",
-        "|---|---|---|---|---|---|",
-    ]
-    rows = []
+    rows, cells = [], []
     for (v, mode), rs in results.items():
         t = [x["to_threshold_s"] for x in rs]
         ok = [x for x in t if x is not None]
@@ -104,15 +92,20 @@ def main() -> None:
                "all": rs}
         rows.append(row)
         fmt = (lambda x: "not reached" if x is None else f"{x:.1f}")
-        lines.append(f"| {v or '(main job)'} | {mode} | {fmt(row['to_threshold_s'])} | "
-                     f"{fmt(row['min_s'])}-{fmt(row['max_s'])} | "
-                     f"{', '.join(str(e) for e in row['epochs'])} | {row['process_s']:.1f} |")
-    text = "\n".join(lines) + "\n"
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(text, encoding="utf-8")
-    out.with_suffix(".json").write_text(json.dumps(rows, indent=1), encoding="utf-8")
-    print(text)
+        cells.append((v or "(main job)", mode, fmt(row["to_threshold_s"]),
+                      f"{fmt(row['min_s'])}-{fmt(row['max_s'])}",
+                      ", ".join(str(e) for e in row["epochs"]), f"{row['process_s']:.1f}"))
+    h = harness.host()
+    harness.write_results(args.out, "From process start to test success: the main job, cold "
+                          "and warm", [
+        f"`{cmd}` on {harness.machine(h)}. `python -m rdher_jax.train "
+        f"{' '.join(args.settings)}` plus the variant; seconds from starting the process to the "
+        f"first metrics.csv row with test success >= {args.threshold}, median of {args.repeats} "
+        "(min-max), the cases interleaved (order rotated every repeat). cold: an empty "
+        "compilation cache; warm: the cache a previous run filled.",
+        harness.table(["variant", "cache", "to threshold (s)", "min-max", "reached at epoch",
+                       "process (s)"], cells),
+    ], {"rows": rows}, command=cmd, host=h)
 
 
 if __name__ == "__main__":

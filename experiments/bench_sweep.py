@@ -21,22 +21,16 @@ Writes ``experiments/results/bench_sweep.md`` and ``.json``.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
-import json
-import os
-import platform
-import statistics
-import time
-from pathlib import Path
 
+import harness
 import jax
 
+from rdher_jax import startup
 from rdher_jax.config import Config, resolve
 from rdher_jax.executor import Executor, build, stack, tree_bytes
 from rdher_jax.program import hparams_from_config
 
-HERE = Path(__file__).resolve().parent
 LAMBDAS = [(1, 1), (1, 2), (2, 1), (1, 4), (4, 1), (0.5, 4), (4, 0.5)]
 SEEDS = range(5)
 
@@ -46,13 +40,6 @@ def run_configs(base: Config, n: int) -> list[Config]:
     out = [dataclasses.replace(base, lambda_r=float(lr), lambda_h=float(lh), seed=s)
            for lr, lh in LAMBDAS for s in SEEDS]
     return out[:n]
-
-
-def timed(fn, *args):
-    t0 = time.perf_counter()
-    out = fn(*args)
-    jax.block_until_ready(out)
-    return out, time.perf_counter() - t0
 
 
 def state_bytes_paper_sweep() -> dict:
@@ -67,16 +54,15 @@ def state_bytes_paper_sweep() -> dict:
     return {"env": "FetchPush", "runs": 35, "bytes": total, "bytes_per_run": total // 35}
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv: list[str] | None = None) -> None:
+    ap = harness.parser("bench_sweep.py", __doc__.splitlines()[0], quick="N = 1, 2; one round")
     ap.add_argument("--runs", type=int, nargs="+", default=[1, 2, 4, 7, 35])
     ap.add_argument("--rounds", type=int, default=3, help="timed epochs per program (median)")
     ap.add_argument("--n-cycles", type=int, default=2)
-    ap.add_argument("--quick", action="store_true", help="N = 1, 2; one round")
-    ap.add_argument("--out", type=Path, default=HERE / "results" / "bench_sweep")
-    a = ap.parse_args()
+    a = ap.parse_args(argv)
     if a.quick:
         a.runs, a.rounds = [1, 2], 1
+    startup.setup(startup.Startup())
 
     base = resolve(Config(env="FetchReach", algo="her", n_cycles=a.n_cycles, run_dir="unused",
                           progress=False))
@@ -84,80 +70,62 @@ def main() -> None:
     dev = jax.devices()[0]
 
     # ---- build and compile every program (the first epoch includes compilation)
-    programs: dict[str, dict] = {}
+    bench = harness.Bench()
     hp1 = hparams_from_config(base)
     single = jax.jit(trainer.epoch, donate_argnums=0)
     ts = jax.jit(trainer.init)(jax.random.PRNGKey(base.seed), hp1)
-    (ts, _), first = timed(single, ts, hp1)
-    programs["1 run"] = {"n": 1, "fn": single, "ts": ts, "hp": hp1, "first_s": first,
-                         "bytes": tree_bytes(ts), "times": []}
-    print(f"1 run (jit): first epoch incl. compile {first:.1f} s", flush=True)
+    bench.add("1 run", harness.donated(single, ts, hp1))
+    runs_of, state_bytes = {"1 run": 1}, {"1 run": tree_bytes(ts)}
     for n in a.runs:
         runs = run_configs(base, n)
         prog = Executor(trainer, n, devices=[dev])
         hps = prog.put(stack([hparams_from_config(c) for c in runs]))
         keys = prog.put(stack([jax.random.PRNGKey(c.seed) for c in runs]))
         vts = prog.init(keys, hps)
-        (vts, _), first = timed(prog.epoch, vts, hps)
-        programs[f"{n} vmapped"] = {"n": n, "fn": prog.epoch, "ts": vts, "hp": hps,
-                                    "first_s": first, "bytes": tree_bytes(vts), "times": []}
-        print(f"{n} runs (vmap): first epoch incl. compile {first:.1f} s", flush=True)
+        state_bytes[f"{n} vmapped"] = tree_bytes(vts)  # before the epoch donates it
+        bench.add(f"{n} vmapped", harness.donated(prog.epoch, vts, hps))
+        runs_of[f"{n} vmapped"] = n
 
     # ---- interleaved timed rounds
-    for r in range(a.rounds):
-        for p in programs.values():
-            (p["ts"], _), dt = timed(p["fn"], p["ts"], p["hp"])
-            p["times"].append(dt)
-        print(f"round {r + 1}/{a.rounds}: " + ", ".join(
-            f"{k} {p['times'][-1]:.2f} s" for k, p in programs.items()), flush=True)
+    bench.run(a.rounds)
 
-    t1 = statistics.median(programs["1 run"]["times"])
+    t1 = bench.med("1 run")
     rows = []
-    for name, p in programs.items():
-        t = statistics.median(p["times"])
+    for name, n in runs_of.items():
+        t = bench.med(name)
         rows.append({
-            "program": name, "runs": p["n"], "epoch_s": t, "epoch_s_all": p["times"],
-            "vs_one_run": t / t1, "speedup_vs_separate": p["n"] * t1 / t,
-            "first_epoch_s": p["first_s"], "state_bytes": p["bytes"],
-            "state_bytes_per_run": p["bytes"] // p["n"],
+            "program": name, "runs": n, "epoch_s": t, "epoch_s_all": bench.times[name],
+            "vs_one_run": t / t1, "speedup_vs_separate": n * t1 / t,
+            "first_epoch_s": bench.compile_s[name], "state_bytes": state_bytes[name],
+            "state_bytes_per_run": state_bytes[name] // n,
         })
     paper = state_bytes_paper_sweep()
+    cmd = harness.command("bench_sweep.py", argv)
+    h = harness.host()
     info = {
-        "command": "python experiments/bench_sweep.py " + " ".join(
-            f"--{k.replace('_', '-')} {' '.join(map(str, v)) if isinstance(v, list) else v}"
-            for k, v in vars(a).items() if k not in ("out", "quick")),
-        "machine": platform.machine(), "cpus": os.cpu_count(), "jax": jax.__version__,
-        "jax_backend": jax.default_backend(), "devices": [str(d) for d in jax.devices()],
         "epoch": {"env": base.env, "n_cycles": base.n_cycles, "num_envs": base.num_envs,
                   "n_batches": base.n_batches, "batch_size": base.batch_size,
                   "hidden": base.hidden, "layers": base.layers,
                   "n_test_rollouts": base.n_test_rollouts, "buffer_size": base.buffer_size},
         "rounds": a.rounds,
     }
-    md = [
-        "# Sweep benchmark: N runs vmapped as one program vs one run",
-        "",
-        f"`{info['command']}` on {info['machine']}, {info['cpus']} CPUs, JAX {info['jax']} "
-        f"({info['jax_backend']}, one device). One epoch = FetchReach, {base.n_cycles} cycles x "
-        f"{base.num_envs} envs x 50 steps, {base.n_cycles * base.n_batches} updates of batch "
-        f"{base.batch_size}, {base.n_test_rollouts} test episodes; defaults otherwise "
-        f"({base.layers}x{base.hidden} networks, buffer {base.buffer_size:,}). Median of "
-        f"{a.rounds} epochs per program, the programs timed in interleaved rounds.",
-        "",
-        "| program | runs | s / epoch | vs 1 run | speedup vs N separate runs | first epoch "
-        "incl. compile (s) | TrainState MB (sweep) | MB per run |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for r in rows:
-        md.append(f"| {r['program']} | {r['runs']} | {r['epoch_s']:.2f} | "
-                  f"{r['vs_one_run']:.2f}x | {r['speedup_vs_separate']:.2f}x | "
-                  f"{r['first_epoch_s']:.1f} | {r['state_bytes'] / 1e6:.1f} | "
-                  f"{r['state_bytes_per_run'] / 1e6:.1f} |")
+    cells = [(r["program"], r["runs"], f"{r['epoch_s']:.2f}", f"{r['vs_one_run']:.2f}x",
+              f"{r['speedup_vs_separate']:.2f}x", f"{r['first_epoch_s']:.1f}",
+              f"{r['state_bytes'] / 1e6:.1f}", f"{r['state_bytes_per_run'] / 1e6:.1f}")
+             for r in rows]
     vm = [r for r in rows if r["program"] != "1 run"]
     best = max(vm, key=lambda r: r["speedup_vs_separate"])
     last = vm[-1]
-    md += [
-        "",
+    harness.write_results(a.out, "Sweep benchmark: N runs vmapped as one program vs one run", [
+        f"`{cmd}` on {harness.machine(h)} (one device). One epoch = FetchReach, "
+        f"{base.n_cycles} cycles x {base.num_envs} envs x 50 steps, "
+        f"{base.n_cycles * base.n_batches} updates of batch {base.batch_size}, "
+        f"{base.n_test_rollouts} test episodes; defaults otherwise ({base.layers}x{base.hidden} "
+        f"networks, buffer {base.buffer_size:,}). Median of {a.rounds} epochs per program, the "
+        "programs timed in interleaved rounds (order rotated every round).",
+        harness.table(["program", "runs", "s / epoch", "vs 1 run", "speedup vs N separate runs",
+                       "first epoch incl. compile (s)", "TrainState MB (sweep)", "MB per run"],
+                      cells),
         f"Reading: N runs in one vmapped program take {last['vs_one_run']:.2f}x the time of one "
         f"run at N = {last['runs']} ({last['speedup_vs_separate']:.2f}x the throughput of "
         f"running them one after the other; best {best['speedup_vs_separate']:.2f}x at N = "
@@ -165,19 +133,10 @@ def main() -> None:
         "keep both cores busy for one run, so batching runs adds little arithmetic efficiency: "
         "what a sweep gains here is one compilation and one process for all runs, not speed. "
         "An accelerator, which one run leaves mostly idle, is where the vmapped sweep should pay.",
-        "",
         f"Paper-sized sweep: {paper['env']} at the default settings, {paper['runs']} runs "
         f"(7 lambda pairs x 5 seeds): stacked TrainState {paper['bytes'] / 1e9:.2f} GB, "
         f"{paper['bytes_per_run'] / 1e6:.1f} MB per run (by shape, `jax.eval_shape`).",
-        "",
-    ]
-    text = "\n".join(md)
-    print()
-    print(text)
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    a.out.with_suffix(".md").write_text(text)
-    a.out.with_suffix(".json").write_text(json.dumps(
-        {"info": info, "rows": rows, "paper_sweep": paper}, indent=2) + "\n")
+    ], {"info": info, "rows": rows, "paper_sweep": paper}, command=cmd, host=h)
 
 
 if __name__ == "__main__":

@@ -10,11 +10,8 @@ Writes ``experiments/results/bench_train.md`` and ``.json``.
 
 from __future__ import annotations
 
-import argparse
 import csv
-import json
 import os
-import platform
 import statistics
 import subprocess
 import sys
@@ -22,7 +19,7 @@ import tempfile
 import time
 from pathlib import Path
 
-HERE = Path(__file__).resolve().parent
+import harness
 
 
 def cold_start_to(target: float, env: str | None, max_epochs: int | None, extra: list[str],
@@ -126,44 +123,35 @@ def learner_speed(batch: int, n: int, repeats: int) -> dict:
     flops = flops[0] if isinstance(flops, list) else flops
     flops = float(flops.get("flops", float("nan")))
 
-    def timeit(f, *a):
-        jax.block_until_ready(f(*a))
-        ts = []
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            jax.block_until_ready(f(*a))
-            ts.append(time.perf_counter() - t0)
-        return n / statistics.median(ts)
-
-    u = timeit(updates_only, ds)
-    su = timeit(sample_and_update, ds, buf, k)
+    # The two learners interleaved (order rotated every repeat), as the machine's speed drifts.
+    bench = harness.Bench(log=None)
+    bench.add("updates only", updates_only, ds, per=n)
+    bench.add("sample and update", sample_and_update, ds, buf, k, per=n)
+    bench.run(repeats)
+    u, su = 1 / bench.med("updates only"), 1 / bench.med("sample and update")
     # This CPU's dense-matmul throughput in XLA: the arithmetic ceiling the learner runs against.
     a = jnp.ones((1024, 1024), jnp.float32)
     mm = jax.jit(lambda x: jax.lax.fori_loop(0, 20, lambda i, y: jnp.tanh(y @ a), x))
-    jax.block_until_ready(mm(a))
-    tt = []
-    for _ in range(max(repeats, 5)):
-        t0 = time.perf_counter()
-        jax.block_until_ready(mm(a))
-        tt.append(time.perf_counter() - t0)
-    mm_rate = 20 * 2 * 1024**3 / min(tt)  # a ceiling: the best of the repeats
+    ceiling = harness.Bench(log=None)
+    ceiling.add("matmul", mm, a)
+    ceiling.run(max(repeats, 5))
+    mm_rate = 20 * 2 * 1024**3 / ceiling.best("matmul")  # a ceiling: the best of the repeats
     return {"batch": batch, "flops_per_update": flops, "updates_per_s": u,
             "sample_updates_per_s": su, "achieved_gflops": u * flops / 1e9,
             "matmul_gflops": mm_rate / 1e9,
             "bound_updates_per_s": mm_rate / flops if flops == flops else None}
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="smoke run: 1 repeat, fewer updates")
+def main(argv: list[str] | None = None) -> None:
+    ap = harness.parser("bench_train.py", __doc__.splitlines()[0],
+                        quick="smoke run: 1 repeat, fewer updates")
     ap.add_argument("--repeats", type=int, default=1, help="cold starts to time (median)")
     ap.add_argument("--target", type=float, default=0.95)
-    ap.add_argument("--out", default=str(HERE / "results" / "bench_train.md"))
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
+    from rdher_jax import startup
 
-    import jax
-
-    cmd = "python experiments/bench_train.py " + " ".join(sys.argv[1:])
+    startup.setup(startup.Startup())
+    cmd = harness.command("bench_train.py", argv)
     n = 20 if args.quick else 100
     learner = learner_speed(256, n, 3)
     print(f"learner: {learner}", flush=True)
@@ -172,45 +160,37 @@ def main() -> None:
         print(f"cold start: {s}", flush=True)
     hits = [s["hit"]["seconds"] for s in starts if s["hit"]]
     loops = [s["loop_env_steps_per_s"] for s in starts if s["loop_env_steps_per_s"]]
+    h = harness.host()
     info = {
-        "command": cmd,
-        "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs",
-        "jax_backend": jax.default_backend(),
-        "jax": jax.__version__,
         "learner": learner,
         "cold_starts": starts,
         "median_seconds_to_target": statistics.median(hits) if hits else None,
         "median_loop_env_steps_per_s": statistics.median(loops) if loops else None,
     }
-    lines = [
-        "# Trainer benchmark", "",
-        f"`{cmd}` on {info['machine']} (JAX {info['jax']}, {info['jax_backend']}).", "",
-        "| figure | value |", "|---|---|",
-        f"| cold start to test success >= {args.target} on FetchReach (median of "
-        f"{len(starts)}) | "
-        + (f"{info['median_seconds_to_target']:.1f} s" if hits else "not reached") + " |",
-        *[f"| run {i}: epoch / env steps at target | "
-          + (f"{s['hit']['epoch']} / {s['hit']['env_steps']}" if s["hit"] else "-") + " |"
-          for i, s in enumerate(starts)],
-        "| first epoch incl. compile (s) | "
-        + ", ".join(f"{s['first_epoch_s']:.1f}" for s in starts if s["first_epoch_s"]) + " |",
-        "| whole-loop env-steps/s after the first epoch | "
-        + (f"{info['median_loop_env_steps_per_s']:.0f}" if loops else "-") + " |",
-        f"| learner: FLOP per actor+critic update, batch 256 (XLA cost analysis) | "
-        f"{learner['flops_per_update'] / 1e9:.2f} GFLOP |",
-        f"| learner: updates/s, fixed batch | {learner['updates_per_s']:.0f} |",
-        f"| learner: updates/s incl. HER sampling | {learner['sample_updates_per_s']:.0f} |",
-        f"| learner: achieved GFLOP/s | {learner['achieved_gflops']:.1f} |",
-        f"| this CPU: XLA 1024x1024 matmul GFLOP/s | {learner['matmul_gflops']:.1f} |",
-        f"| arithmetic bound on updates/s (matmul rate / FLOP per update) | "
-        f"{learner['bound_updates_per_s']:.0f} |",
+    cells = [
+        (f"cold start to test success >= {args.target} on FetchReach (median of {len(starts)})",
+         f"{info['median_seconds_to_target']:.1f} s" if hits else "not reached"),
+        *((f"run {i}: epoch / env steps at target",
+           f"{s['hit']['epoch']} / {s['hit']['env_steps']}" if s["hit"] else "-")
+          for i, s in enumerate(starts)),
+        ("first epoch incl. compile (s)",
+         ", ".join(f"{s['first_epoch_s']:.1f}" for s in starts if s["first_epoch_s"])),
+        ("whole-loop env-steps/s after the first epoch",
+         f"{info['median_loop_env_steps_per_s']:.0f}" if loops else "-"),
+        ("learner: FLOP per actor+critic update, batch 256 (XLA cost analysis)",
+         f"{learner['flops_per_update'] / 1e9:.2f} GFLOP"),
+        ("learner: updates/s, fixed batch", f"{learner['updates_per_s']:.0f}"),
+        ("learner: updates/s incl. HER sampling", f"{learner['sample_updates_per_s']:.0f}"),
+        ("learner: achieved GFLOP/s", f"{learner['achieved_gflops']:.1f}"),
+        ("this CPU: XLA 1024x1024 matmul GFLOP/s", f"{learner['matmul_gflops']:.1f}"),
+        ("arithmetic bound on updates/s (matmul rate / FLOP per update)",
+         f"{learner['bound_updates_per_s']:.0f}"),
     ]
-    text = "\n".join(lines) + "\n"
-    print(text)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(text)
-    out.with_suffix(".json").write_text(json.dumps(info, indent=2, default=str))
+    harness.write_results(args.out, "Trainer benchmark", [
+        f"`{cmd}` on {harness.machine(h)}; the learner's two loops timed interleaved "
+        "(medians of 3).",
+        harness.table(["figure", "value"], cells),
+    ], info, command=cmd, host=h)
 
 
 if __name__ == "__main__":

@@ -720,3 +720,128 @@ def test_floor_expected_best_epoch_matches_simulation():
         sim = rng.binomial(n, p, size=(40_000, epochs)).max(axis=1).mean() / n
         assert floor.expected_best(p, n, epochs) == pytest.approx(sim, abs=0.004)
     assert floor.expected_best(1.0, 10, 3) == pytest.approx(1.0)
+
+
+def test_bench_harness_rotates_the_order_and_takes_medians():
+    """harness.Bench: every group once per repeat, each in an order rotated by the repeat; the
+    time kept is per call (over ``per``), its median, and paired ratios per repeat."""
+    import harness  # noqa: PLC0415
+
+    now, calls = [0.0], []
+    cost = {"a": [5, 1, 3, 2], "b": [2, 2, 8, 4], "c": [9, 9, 9, 9], "x": [1, 1, 1, 1]}
+
+    def fn(name):
+        def f():
+            k = len([c for c in calls if c == name]) - 1  # the compile call is call 0
+            now[0] += cost[name][k] if k >= 0 else 100.0
+            calls.append(name)
+        return f
+
+    bench = harness.Bench(log=None, clock=lambda: now[0])
+    bench.add("a", fn("a"))
+    bench.add("b", fn("b"), per=2)
+    bench.add("c", fn("c"))
+    bench.add("x", fn("x"), group="other")
+    assert calls == ["a", "b", "c", "x"] and bench.compile_s["a"] == 100.0
+    calls.clear()
+    calls.extend(["a", "b", "c", "x"])  # keep each name's call count for the costs
+    bench.run(4)
+    assert calls[4:] == ["a", "b", "c", "x", "b", "c", "a", "x",
+                         "c", "a", "b", "x", "a", "b", "c", "x"]
+    assert bench.times["a"] == [5, 1, 3, 2] and bench.times["b"] == [1, 1, 4, 2]
+    assert bench.med("a") == 2.5 and bench.best("a") == 1 and bench.med("b") == 1.5
+    assert bench.ratios("b", "a") == [0.2, 1.0, 4 / 3, 1.0] and bench.ratio("b", "a") == 1.0
+    assert bench.ratios(["a", "b"], "c")[2] == 7 / 9
+    assert harness.rotated(["p", "q", "r"], 4) == ["q", "r", "p"]
+    sp = harness.spread([4.0, 1.0, 3.0, 2.0])
+    assert sp["median"] == 2.5 and sp["best"] == 1.0 and (sp["q1"], sp["q3"]) == (1.75, 3.25)
+    got = harness.interleave(["u", "v"], 3, lambda n: n.upper())
+    assert got == {"u": ["U", "U", "U"], "v": ["V", "V", "V"]}
+
+
+def test_bench_harness_writes_the_same_figures_to_markdown_and_json(tmp_path):
+    import harness  # noqa: PLC0415
+
+    rows = [{"case": "one", "ms": 1.25}, {"case": "two", "ms": 30.5}]
+    text = harness.write_results(
+        tmp_path / "sub" / "bench_x.md", "A title",
+        ["`python experiments/bench_x.py` on a machine.",
+         harness.table(["case", "ms"], [(r["case"], f"{r['ms']:.2f}") for r in rows])],
+        {"rows": rows}, command="python experiments/bench_x.py", host={"cpu_count": 2},
+        echo=False)
+    md = (tmp_path / "sub" / "bench_x.md").read_text()
+    data = json.loads((tmp_path / "sub" / "bench_x.json").read_text())
+    assert md == text and md.startswith("# A title\n\n`python experiments/bench_x.py`")
+    assert "| case | ms |\n|---|---|\n| one | 1.25 |\n| two | 30.50 |\n" in md
+    assert data == {"command": "python experiments/bench_x.py", "host": {"cpu_count": 2},
+                    "rows": rows}
+    ap = harness.parser("bench_x.py", "d", repeats=3, quick="small", limits=True)
+    a = ap.parse_args(["--quick"])
+    assert (a.repeats, a.quick, a.limits_script) == (3, True, None)
+    assert a.out == harness.RESULTS / "bench_x.md"
+    assert harness.command("bench_x.py", ["--out", "/tmp/a/b.md", "k=v w"]) == (
+        "python experiments/bench_x.py --out b.md 'k=v w'")
+
+
+@pytest.mark.parametrize("script", ["bench_cycle", "bench_envs", "bench_gpu", "bench_overlap",
+                                    "bench_processes", "bench_relabel", "bench_start",
+                                    "bench_sweep", "bench_train", "bench_xla_flags"])
+def test_bench_scripts_import_without_side_effects(script, monkeypatch):
+    """Host devices and XLA flags are start-up's (rdher_jax.startup.setup, in main): importing a
+    benchmark script changes no environment variable."""
+    import importlib  # noqa: PLC0415
+    import os  # noqa: PLC0415
+
+    before = dict(os.environ)
+    importlib.import_module(script)
+    assert dict(os.environ) == before
+    proc = subprocess.run([sys.executable, str(EXP / f"{script}.py"), "--help"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0 and f"usage: python experiments/{script}.py" in proc.stdout
+
+
+def test_bench_processes_layouts_interleaved_and_written(tmp_path, monkeypatch):
+    """bench_processes.py: the three layouts in rotated order per repeat, medians in the table
+    and the JSON, and the two-device child asks for its devices as start-up does."""
+    import bench_processes  # noqa: PLC0415
+
+    from rdher_jax import startup  # noqa: PLC0415
+
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
+    two = bench_processes.env(2)
+    assert two["JAX_NUM_CPU_DEVICES"] == "2" and "XLA_FLAGS" not in two
+    assert "JAX_NUM_CPU_DEVICES" not in bench_processes.env()
+    launched = []
+
+    def timed(cmds, envs):
+        launched.append((len(cmds), envs[0].get("JAX_NUM_CPU_DEVICES")))
+        return {(1, None): 10.0, (2, None): 6.0, (1, "2"): 8.0}[launched[-1]] + len(launched)
+
+    monkeypatch.setattr(bench_processes, "timed", timed)
+    monkeypatch.setattr(startup, "setup", lambda s: None)  # this process is set up already
+    out = tmp_path / "bench_processes.md"
+    bench_processes.main(["--repeats", "2", "--runs", "2", "--epochs", "1", "--out", str(out)])
+    assert launched == [(1, None), (2, None), (1, "2"), (2, None), (1, "2"), (1, None)]
+    data = json.loads(out.with_suffix(".json").read_text())
+    assert data["seconds"] == {"1 process, 1 core": [11.0, 16.0],
+                               "2 processes, 1 core each": [8.0, 10.0],
+                               "1 process, 2 cores, 2 devices": [11.0, 13.0]}
+    assert "| 2 processes, 1 core each | 9.0 | 1.50x |" in out.read_text()
+
+
+def test_bench_harness_machine_limits(tmp_path):
+    """--limits-script: the script's table and the figures it writes to --json; a failing one
+    stops the benchmark."""
+    import harness  # noqa: PLC0415
+
+    ok = tmp_path / "limits.py"
+    ok.write_text("import json, sys\nprint('| core | 1.0 |')\n"
+                  "json.dump({'gflops': 2.5}, open(sys.argv[sys.argv.index('--json') + 1], 'w'))\n")
+    lim = harness.machine_limits(str(ok))
+    assert (lim["script"], lim["table"], lim["figures"]) == ("limits.py", "| core | 1.0 |",
+                                                             {"gflops": 2.5})
+    assert harness.machine_limits(None) is None
+    bad = tmp_path / "bad.py"
+    bad.write_text("raise SystemExit(3)\n")
+    with pytest.raises(subprocess.CalledProcessError):
+        harness.machine_limits(str(bad))
