@@ -327,7 +327,6 @@ def callback_round_trip_us(be, batch: int, length: int = 200, repeats: int = 5) 
     """One trivial ``pure_callback`` per scan step, with the env step's shapes and dtypes."""
     import jax
     import jax.numpy as jnp
-
     from rdher_jax.envs.physics import RAW_SIZE
 
     raw = np.zeros((batch, RAW_SIZE), np.float32)
@@ -395,7 +394,6 @@ def bare_mjbatch(setup, batch: int, threads: int) -> Callable[[int], float]:
     no forward, no readout. Returns a function of n_steps giving microseconds per batched step."""
     import mjbatch
     import mujoco
-
     from rdher_jax.envs.physics import MOCAP_QUAT_DELTA, N_SUBSTEPS
 
     s = setup

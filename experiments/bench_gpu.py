@@ -56,7 +56,6 @@ def env_worker(batches: list[int], deadline: float) -> None:
     startup.setup(startup.Startup(ffi=False, compile_cache=False))
     import jax
     from bench_envs import batch_keys, compile_timed, make_rollout
-
     from rdher_jax.envs import make_env
 
     env = make_env("FetchPush", backend="mjx", auto_reset=False)

@@ -24,9 +24,9 @@ import harness
 import jax
 import jax.numpy as jnp
 import optax
+from rdher_jax.envs import make_env
 
 from rdher_jax import startup
-from rdher_jax.envs import make_env
 
 
 def make_rollout(env_name: str, num_envs: int):
