@@ -168,20 +168,17 @@ def make_rollout(env, steps: int = EPISODE, sharding=None):
     drop the observation arithmetic).
     """
     import jax
+    from rdher_jax.envs.rollout import rollout as env_rollout
+
+    def policy(k, _):
+        return jax.vmap(lambda kk: jax.random.uniform(kk, (env.action_size,), minval=-1.0,
+                                                      maxval=1.0))(k)
 
     def rollout(keys: jax.Array):
         k_reset, k_act = jax.vmap(jax.random.split, out_axes=1)(keys)
-        state = jax.vmap(env.reset)(k_reset)
         step_keys = jax.vmap(lambda k: jax.random.split(k, steps), out_axes=1)(k_act)
-
-        def body(s, k):
-            a = jax.vmap(lambda kk: jax.random.uniform(kk, (env.action_size,), minval=-1.0,
-                                                       maxval=1.0))(k)
-            s = jax.vmap(env.step)(s, a)
-            return s, (s.obs["observation"], s.reward)
-
-        _, ys = jax.lax.scan(body, state, step_keys)
-        return ys
+        return env_rollout(env, policy, k_reset, step_keys,
+                           lambda s, a, nxt: (nxt.obs["observation"], nxt.reward))[2]
 
     if sharding is None:
         return jax.jit(rollout)

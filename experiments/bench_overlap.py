@@ -25,6 +25,7 @@ import jax
 import jax.numpy as jnp
 import optax
 from rdher_jax.envs import make_env
+from rdher_jax.envs.rollout import rollout as env_rollout
 
 from rdher_jax import startup
 
@@ -34,15 +35,8 @@ def make_rollout(env_name: str, num_envs: int):
 
     def rollout(key):
         keys = jax.random.split(key, num_envs + 1)
-        state = jax.vmap(env.reset)(keys[1:])
-
-        def body(s, k):
-            a = jax.random.uniform(k, (num_envs, 4), minval=-1.0, maxval=1.0)
-            s = jax.vmap(env.step)(s, a)
-            return s, s.reward
-
-        _, ys = jax.lax.scan(body, state, jax.random.split(keys[0], 50))
-        return ys
+        policy = lambda k, s: jax.random.uniform(k, (num_envs, 4), minval=-1.0, maxval=1.0)  # noqa: E731
+        return env_rollout(env, policy, keys[1:], jax.random.split(keys[0], 50))[2]
 
     return rollout
 

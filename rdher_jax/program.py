@@ -28,6 +28,7 @@ from . import buffer as rb
 from . import relabel
 from .config import ALGO_NAMES
 from .ddpg import DDPGParams, DDPGState, make_ddpg
+from .envs.rollout import rollout as env_rollout
 from .relabel import SOURCE_NAMES, RelabelParams
 
 
@@ -138,7 +139,6 @@ def make_program(cfg, env) -> Program:
         compute_dtype=cfg.compute_dtype, target_clip=cfg.target_clip,
     )
     n_envs, n_test = cfg.num_envs, cfg.n_test_rollouts
-    v_reset, v_step = jax.vmap(env.reset), jax.vmap(env.step)
     capacity_episodes = rb.init(cfg.buffer_size, T, 1, 1, 1).capacity_episodes
     relabeller = relabel.make_relabeller(cfg, env.compute_reward, capacity_episodes, T, goal_dim)
     updates_per_epoch = cfg.n_cycles * cfg.n_batches
@@ -148,15 +148,17 @@ def make_program(cfg, env) -> Program:
         """``n`` episodes of T steps from fresh resets: the episodes, episode-major, and each
         one's final-step success, ``(n,)``."""
         k_reset, k_act = jax.random.split(key)
-        state = v_reset(jax.random.split(k_reset, n))
 
-        def step(state, k):
+        def policy(k, state):
             o, g = state.obs["observation"], state.obs["desired_goal"]
-            a = agent.explore(k, ds, o, g, hp) if explore else agent.act(ds, o, g)
-            nxt = v_step(state, a)
-            return nxt, (o, state.obs["achieved_goal"], g, a)
+            return agent.explore(k, ds, o, g, hp) if explore else agent.act(ds, o, g)
 
-        last, (o, ag, g, a) = jax.lax.scan(step, state, jax.random.split(k_act, T))
+        def record(state, a, _):
+            obs = state.obs
+            return obs["observation"], obs["achieved_goal"], obs["desired_goal"], a
+
+        _, last, (o, ag, g, a) = env_rollout(env, policy, jax.random.split(k_reset, n),
+                                             jax.random.split(k_act, T), record)
 
         def with_last(x, y):  # (T, n, d) + final (n, d) -> (n, T+1, d)
             return jnp.swapaxes(jnp.concatenate([x, y[None]], 0), 0, 1)

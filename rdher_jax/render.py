@@ -227,24 +227,19 @@ def make_rollout(env, act, episodes: int):
     import jax
     import jax.numpy as jnp
 
-    v_reset, v_step = jax.vmap(env.reset), jax.vmap(env.step)
+    from .envs.rollout import rollout as env_rollout
 
     def record(state):
         return (snapshot(env, state.data), state.info["goal"], state.info["is_success"])
 
     def rollout(key, policy):
-        state = v_reset(jax.random.split(key, episodes))
-
-        def step(state, _):
-            a = act(policy, state.obs["observation"], state.obs["desired_goal"])
-            nxt = v_step(state, a)
-            return nxt, record(nxt)
-
-        _, rest = jax.lax.scan(step, state, None, length=env.episode_length)
-        first = record(state)
+        first, _, rest = env_rollout(
+            env, lambda _, s: act(policy, s.obs["observation"], s.obs["desired_goal"]),
+            jax.random.split(key, episodes), record=lambda s, a, nxt: record(nxt))
         # (T, n, ...) after the first (n, ...) -> (n, T + 1, ...)
         return jax.tree.map(
-            lambda x, y: jnp.swapaxes(jnp.concatenate([x[None], y], 0), 0, 1), first, rest)
+            lambda x, y: jnp.swapaxes(jnp.concatenate([x[None], y], 0), 0, 1),
+            record(first), rest)
 
     return rollout
 
