@@ -119,21 +119,11 @@ def full_buffer(key, size: int, success: float, still: float):
 
 
 def bulk_index(state, buf, tol):
-    """DHER's indices of a full buffer by one sort (what the per-cycle merges maintain)."""
-    import jax
-    import jax.numpy as jnp
-
+    """DHER's indices of a full buffer by one sort (``dher.index_buffer``: what the per-cycle
+    merges maintain)."""
     from rdher_jax.relabel import dher
 
-    failed = compute_reward(buf.ag[:, T], buf.g[:, T]) < 0
-    idx = state.g_idx  # a fresh state lists every point id, slot-major: the encoding's own
-
-    def index(x):
-        keys = jnp.where(failed[:, None], dher.cell_keys(x, tol), dher.SENTINEL).reshape(-1)
-        return jax.lax.sort((keys, idx), num_keys=1, is_stable=True)
-
-    (g_keys, g_idx), (ag_keys, ag_idx) = index(buf.g), index(buf.ag)
-    return state.replace(g_keys=g_keys, g_idx=g_idx, ag_keys=ag_keys, ag_idx=ag_idx)
+    return dher.index_buffer(state, buf, tol, compute_reward)
 
 
 def replay_cycles(update, state, buf, params, first: int, cycles: int, num_new: int):

@@ -28,6 +28,7 @@ import pytest
 from rdher_jax import buffer as rb
 from rdher_jax import relabel
 from rdher_jax.config import Config
+from rdher_jax.relabel import dher as dher_mod
 
 OBS, ACT, D = 2, 2, 3
 CAP, T, NEW = 5, 4, 2  # 5 slots of episodes of 4 steps, 2 new episodes per cycle
@@ -137,3 +138,24 @@ def test_ring_holds_the_newest_records_of_the_capped_matching(seed, partners, re
     want = [(i % CAP, p, j % CAP, q) for i, p, j, q in kept if i >= oldest and j >= oldest]
     assert live == want
     assert 0 < len(live) < len(ring)  # some recorded episodes were overwritten since
+
+
+def test_per_cycle_merges_keep_the_index_one_sort_gives():
+    """After cycles that fill and wrap the buffer, the incrementally merged indices hold the
+    same (key, point) pairs as one sort of the whole buffer (dher.index_buffer), in key order."""
+    r, update, add = dher(2, 4096)
+    rng = np.random.default_rng(3)
+    buf, state = rb.init(CAP * T, T, OBS, D, ACT), r.init()
+    for _ in range(7):  # 14 episodes through 5 slots
+        buf = add(buf, episodes(rng, NEW, span=3))
+        state = update(state, buf, PARAMS)
+    bulk = jax.jit(dher_mod.index_buffer, static_argnums=3)(r.init(), buf, PARAMS.dher_tol,
+                                                              reward_fn)
+    for keys, idx in (("g_keys", "g_idx"), ("ag_keys", "ag_idx")):
+        a_k, a_i = np.asarray(getattr(bulk, keys)), np.asarray(getattr(bulk, idx))
+        b_k, b_i = np.asarray(getattr(state, keys)), np.asarray(getattr(state, idx))
+        assert np.all(np.diff(b_k.astype(np.int64)) >= 0), keys
+        assert (a_k != dher_mod.SENTINEL).sum() > 0, keys  # some failed episodes indexed
+        oa, ob = np.lexsort((a_i, a_k)), np.lexsort((b_i, b_k))
+        np.testing.assert_array_equal(a_k[oa], b_k[ob], err_msg=keys)
+        np.testing.assert_array_equal(a_i[oa], b_i[ob], err_msg=idx)

@@ -150,6 +150,31 @@ class DHERFns(NamedTuple):
     gather_combined: Callable
 
 
+def point_ids(capacity_episodes: int, W: int) -> jax.Array:
+    """Every point's id, slot-major: ``slot << shift | step`` (a point is found without a
+    division)."""
+    shift = max(1, (W - 1).bit_length())
+    return ((jnp.arange(capacity_episodes, dtype=jnp.int32)[:, None] << shift)
+            | jnp.arange(W, dtype=jnp.int32)[None, :]).reshape(-1)
+
+
+def index_buffer(state: DHERState, buffer: BufferState, tol: jax.Array,
+                 compute_reward: RewardFn) -> DHERState:
+    """``state`` with both indices rebuilt from every stored episode by one sort: what the
+    per-cycle merges of ``update`` maintain (the same (key, point) pairs), for a buffer filled
+    at once, e.g. a benchmark's or a test's."""
+    cap, W = buffer.ag.shape[:2]
+    failed = compute_reward(buffer.ag[:, W - 1], buffer.g[:, W - 1]) < 0
+    points = point_ids(cap, W)
+
+    def index(x):
+        keys = jnp.where(failed[:, None], cell_keys(x, tol), SENTINEL).reshape(-1)
+        return jax.lax.sort((keys, points), num_keys=1, is_stable=True)
+
+    (g_keys, g_idx), (ag_keys, ag_idx) = index(buffer.g), index(buffer.ag)
+    return state.replace(g_keys=g_keys, g_idx=g_idx, ag_keys=ag_keys, ag_idx=ag_idx)
+
+
 def make_dher(*args, **kwargs) -> Relabeller:
     """DHER as a ``Relabeller`` (arguments as :func:`build_dher`)."""
     f = build_dher(*args, **kwargs)
@@ -187,8 +212,7 @@ def build_dher(compute_reward: RewardFn, batch_size: int, capacity_episodes: int
     def init() -> DHERState:
         z = jnp.zeros((records,), jnp.int32)
         full = jnp.full((P,), SENTINEL, jnp.int32)
-        points = ((jnp.arange(cap, dtype=jnp.int32)[:, None] << shift)
-                  | jnp.arange(W, dtype=jnp.int32)[None, :]).reshape(-1)
+        points = point_ids(cap, W)
         return DHERState(
             g_keys=full, g_idx=points, ag_keys=full, ag_idx=points,
             slot_gen=jnp.zeros((cap,), jnp.int32),
