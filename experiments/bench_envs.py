@@ -53,6 +53,7 @@ from typing import Any
 
 import numpy as np
 
+from rdher_jax.envs.registry import task_spec
 from rdher_jax.tasks import PAPER_TASKS
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -151,7 +152,7 @@ def gym_env(task: str):
     import gymnasium_robotics
 
     gym.register_envs(gymnasium_robotics)
-    env = gym.make(f"{task}-v4")
+    env = gym.make(task_spec(task).gymnasium_id)
     env.reset(seed=0)
     env.action_space.seed(0)
     return env
