@@ -56,9 +56,9 @@ def make_env(name: str, backend: str | None = None, scene: str | None = None,
         (the MJX-edited scene). None: original for ``mujoco``, mjx for ``mjx``.
       auto_reset: replace a state whose episode ended by a fresh episode inside ``step``.
       num_threads: host threads for the native backend (default: all usable cores).
-      goal_speed: moving tasks only: metres per step the goal moves (None: the task's, 0.011
-        for FetchReachMoving, 0.005 for FetchPushMoving; 0 keeps the goal still).
-      episode_length: env steps per episode (None: the task's, 50).
+      goal_speed: moving tasks only: metres per step the goal moves (None: the task's,
+        ``registry.TASKS[name].goal_speed``; 0 keeps the goal still).
+      episode_length: env steps per episode (None: the task's).
       physics_call: native backend only: ``"ffi"`` (XLA FFI handlers, so compiled programs
         can be cached; built once per machine, falling back to the callback with a warning)
         or ``"callback"`` (``jax.pure_callback``). Bit-identical results.
