@@ -52,8 +52,9 @@ from datetime import datetime, timezone
 from typing import Any
 
 import numpy as np
-
+from rdher_jax.envs.notices import quiet_gymnasium_robotics
 from rdher_jax.envs.registry import task_spec
+
 from rdher_jax.tasks import PAPER_TASKS
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -149,6 +150,8 @@ def hardware() -> dict[str, Any]:
 # ----------------------------------------------------------------------------- gymnasium
 def gym_env(task: str):
     import gymnasium as gym
+
+    quiet_gymnasium_robotics()
     import gymnasium_robotics
 
     gym.register_envs(gymnasium_robotics)

@@ -25,6 +25,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from rdher_jax.envs.notices import quiet_gymnasium_robotics
 from rdher_jax.envs.registry import GYMNASIUM_TASK_NAMES, task_spec
 
 HERE = Path(__file__).resolve().parent
@@ -35,6 +36,8 @@ DEFAULT_OUT = HERE / "results" / "floor.md"
 def zero_action_success(task: str, episodes: int, first_seed: int = 0) -> np.ndarray:
     """is_success at the last of an episode's zero-action steps, one episode per reset seed."""
     import gymnasium as gym
+
+    quiet_gymnasium_robotics()
     import gymnasium_robotics
 
     spec = task_spec(task)

@@ -36,6 +36,7 @@ os.environ.setdefault("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 from rdher_jax.envs import scene  # noqa: E402
+from rdher_jax.envs.notices import quiet_gymnasium_robotics  # noqa: E402
 from rdher_jax.envs.physics import N_SUBSTEPS  # noqa: E402
 from rdher_jax.envs.registry import GYMNASIUM_TASK_NAMES, task_spec  # noqa: E402
 
@@ -316,6 +317,8 @@ def run_all(sim: FetchSim, task: str, eps: list[Episode], **kw) -> list:
 def check_replica(task: str, n_steps: int = REPLICA_STEPS) -> float:
     """Largest |obs difference| between the replica and gymnasium-robotics ``env.step``."""
     import gymnasium as gym
+
+    quiet_gymnasium_robotics()
     import gymnasium_robotics
 
     gym.register_envs(gymnasium_robotics)
@@ -557,7 +560,6 @@ def air_episode(rng: np.random.Generator) -> np.ndarray:
 
 def mjx_study(task: str = "FetchPush") -> dict:
     import jax
-
     from rdher_jax.envs.notices import quiet_mjx
 
     quiet_mjx()

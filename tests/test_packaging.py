@@ -61,8 +61,9 @@ def test_the_import_rules_catch_a_break(tmp_path):
 def test_the_trainer_table_has_one_row_per_registry_task():
     """``rdher_jax.tasks`` adds the trainer's and the paper's facts to the registry's tasks:
     the same tasks, in the same order."""
-    from rdher_jax import tasks
     from rdher_jax.envs import registry
+
+    from rdher_jax import tasks
 
     assert tuple(tasks.TASKS) == registry.TASK_NAMES
 
