@@ -2,31 +2,36 @@
 moving-goal variants of two of them.
 
 ``make_env(name, backend=None)`` builds one; see ``fetch.FetchEnv`` for the API and the
-``fetch`` module docstring for the moving tasks.
+``fetch`` module docstring for the moving tasks. ``registry`` holds every task's physical facts.
+
+Importing the package imports neither JAX nor MuJoCo (the registry is read before they load):
+``make_env``, ``FetchEnv`` and ``State`` import them on first use.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from typing import TYPE_CHECKING
 
-from rdher_jax._quiet import quiet_imports
+from .registry import GYMNASIUM_TASK_NAMES, MOVING_TASK_NAMES, TASK_NAMES, task_spec
 
-# Before the scenes import gymnasium_robotics. Not at the package's import: rendering must
-# choose MUJOCO_GL before mujoco is first imported.
-quiet_imports()
-
-from .fetch import EPISODE_LENGTH, FetchEnv, State  # noqa: E402
-from .physics import MOVING_TASKS, TASKS, Setup, check_task  # noqa: E402
+if TYPE_CHECKING:
+    from .fetch import FetchEnv, State
 
 BACKENDS = ("mujoco", "mjx")
-GYMNASIUM_TASK_NAMES = tuple(TASKS)  # as gymnasium-robotics' Fetch*-v4 (conformance-tested)
-MOVING_TASK_NAMES = tuple(MOVING_TASKS)  # DHER's Dy-Reaching and Dy-Pushing
-TASK_NAMES = GYMNASIUM_TASK_NAMES + MOVING_TASK_NAMES
 
 # XLA:CPU flags under which MJX is usable on a CPU (see docs/performance.md, "MJX on a CPU").
 CPU_XLA_FLAGS = (
     "--xla_cpu_use_fusion_emitters=false",
 )
+
+
+def __getattr__(name: str):
+    if name in ("FetchEnv", "State"):
+        from . import fetch
+
+        return getattr(fetch, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def default_backend() -> str:
@@ -43,28 +48,28 @@ def make_env(name: str, backend: str | None = None, scene: str | None = None,
     """Build a Fetch task.
 
     Args:
-      name: FetchReach, FetchPush, FetchSlide or FetchPickAndPlace (a ``-v4`` suffix is
-        accepted), or a moving-goal task, FetchReachMoving or FetchPushMoving.
+      name: a task of ``TASK_NAMES`` (a gymnasium-robotics task's ``-v4`` suffix is accepted):
+        FetchReach, FetchPush, FetchSlide, FetchPickAndPlace, or a moving-goal task,
+        FetchReachMoving or FetchPushMoving.
       backend: ``"mujoco"`` (native MuJoCo via mjbatch), ``"mjx"``, or None for the default.
       scene: ``"original"`` (the unedited gymnasium-robotics scene; native only) or ``"mjx"``
         (the MJX-edited scene). None: original for ``mujoco``, mjx for ``mjx``.
       auto_reset: replace a state whose episode ended by a fresh episode inside ``step``.
       num_threads: host threads for the native backend (default: all usable cores).
-      goal_speed: moving tasks only: metres per step the goal moves (None: the task's, 0.011
-        for FetchReachMoving, 0.005 for FetchPushMoving; 0 keeps the goal still).
-      episode_length: env steps per episode (None: the task's, 50).
+      goal_speed: moving tasks only: metres per step the goal moves (None: the task's,
+        ``registry.TASKS[name].goal_speed``; 0 keeps the goal still).
+      episode_length: env steps per episode (None: the task's).
       physics_call: native backend only: ``"ffi"`` (XLA FFI handlers, so compiled programs
         can be cached; built once per machine, falling back to the callback with a warning)
         or ``"callback"`` (``jax.pure_callback``). Bit-identical results.
     Returns:
       A ``FetchEnv`` with pure ``reset(key)`` and ``step(state, action)``.
     """
-    name = name.removesuffix("-v4")
-    spec = check_task(name)
+    spec = task_spec(name)
     if goal_speed is not None:
         if not spec.moving:
             raise ValueError(f"goal_speed applies to the moving tasks "
-                             f"({', '.join(MOVING_TASKS)}), not {name}")
+                             f"({', '.join(MOVING_TASK_NAMES)}), not {spec.name}")
         spec = dataclasses.replace(spec, goal_speed=float(goal_speed))
     backend = backend or default_backend()
     if backend not in BACKENDS:
@@ -72,6 +77,9 @@ def make_env(name: str, backend: str | None = None, scene: str | None = None,
     scene = scene or ("original" if backend == "mujoco" else "mjx")
     if backend == "mjx" and scene != "mjx":
         raise ValueError("the mjx backend needs scene='mjx': mjx.put_model rejects the original")
+    from .fetch import FetchEnv
+    from .physics import Setup
+
     setup = Setup(spec, scene)
     if backend == "mujoco":
         from .native import NativeBackend
@@ -86,5 +94,5 @@ def make_env(name: str, backend: str | None = None, scene: str | None = None,
     return FetchEnv(setup, physics, auto_reset=auto_reset, episode_length=episode_length)
 
 
-__all__ = ["BACKENDS", "CPU_XLA_FLAGS", "EPISODE_LENGTH", "FetchEnv", "GYMNASIUM_TASK_NAMES",
-           "MOVING_TASK_NAMES", "State", "TASK_NAMES", "default_backend", "make_env"]
+__all__ = ["BACKENDS", "CPU_XLA_FLAGS", "FetchEnv", "GYMNASIUM_TASK_NAMES", "MOVING_TASK_NAMES",
+           "State", "TASK_NAMES", "default_backend", "make_env"]

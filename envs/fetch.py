@@ -52,8 +52,8 @@ Not matched, or not found:
   mujoco-py on gym 0.10's assets. The extra ``mj_forward`` their ``_step_callback`` runs before
   the action changes no state and is not repeated.
 
-The speed is a task constant (``TaskSpec.goal_speed``) that ``make_env(..., goal_speed=...)``
-overrides; it is a static float, fixed when the env is built.
+The speed is a task constant (``registry.TaskSpec.goal_speed``) that ``make_env(...,
+goal_speed=...)`` overrides; it is a static float, fixed when the env is built.
 """
 
 from __future__ import annotations
@@ -65,12 +65,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from rdher_jax.tasks import TASKS
-
 from .physics import RAW_SLICES, Setup
 
-# Every Fetch task here has 50-step episodes (the task table says so per task).
-EPISODE_LENGTH = 50
 _EPS4 = np.finfo(np.float64).eps * 4.0
 
 
@@ -120,7 +116,7 @@ def mat2euler(mat: jax.Array) -> jax.Array:
 
 
 class FetchEnv:
-    """A Fetch task over a physics backend. Build it with ``rdher_jax.make_env``."""
+    """A Fetch task over a physics backend. Build it with ``make_env``."""
 
     def __init__(self, setup: Setup, backend, auto_reset: bool = True,
                  episode_length: int | None = None):
@@ -129,7 +125,7 @@ class FetchEnv:
         self.backend = backend
         self.auto_reset = auto_reset
         self.name = self.spec.name
-        self.episode_length = int(episode_length or TASKS[self.name].episode_length)
+        self.episode_length = int(episode_length or self.spec.episode_length)
         self.dt = setup.dt
         self.distance_threshold = self.spec.distance_threshold
         self.obs_size = 25 if self.spec.has_object else 10

@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rdher_jax._quiet import quiet_mjx
+from .notices import quiet_mjx
 
 quiet_mjx()
 from mujoco import mjx  # noqa: E402

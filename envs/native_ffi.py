@@ -12,7 +12,7 @@ The handlers (``native_ffi.cc``) are ``NativeBackend.host_step`` and ``host_rese
 in C++, operation for operation, on the libmujoco that mjbatch steps with: the results are the
 callback's, bit for bit (``tests/test_native_ffi.py``), so which path runs never changes a
 result. The library is compiled once per machine with the system C++ compiler, against the
-installed jaxlib's FFI headers and mujoco's (``rdher_jax.ffi_build``); where that fails (no
+installed jaxlib's FFI headers and mujoco's (``ffi_build``); where that fails (no
 compiler, say) the backend keeps the callback and says why, once.
 ``physics_call=callback`` (``make_env``, and the trainer's config) keeps the callback.
 """
@@ -57,7 +57,7 @@ def library() -> ctypes.CDLL | None:
     with _lock:
         if _lib is not None or _failed is not None:
             return _lib
-        from rdher_jax import ffi_build
+        from . import ffi_build
 
         try:
             ffi_build.wait()  # a build the trainer started in the background

@@ -1,25 +1,20 @@
-"""What both physics backends share: the task constants, the gymnasium-robotics ``_env_setup``
-run natively once, the reset template, the ids the task logic needs, and the layout of the raw
-physics readout.
+"""What both physics backends share: the gymnasium-robotics ``_env_setup`` run natively once,
+the reset template, the ids the task logic needs, and the layout of the raw physics readout.
 
-``TASKS`` are gymnasium-robotics' four ``Fetch*-v4`` tasks, each on its own scene;
-``MOVING_TASKS`` are DHER's dynamic-goal tasks (see ``rdher_jax.envs.fetch``), which reuse the
-FetchReach and FetchPush scenes and differ only in task logic.
+A task's constants are the registry's (``registry.TASKS``); a moving-goal task runs on the
+scene and setup of the task it is modelled on (``TaskSpec.scene_name``).
 
 A backend turns (physics state, mocap delta, finger command) into (physics state, raw readout).
 The raw readout is a flat float32 vector with the quantities the observation is built from; the
-observation itself is assembled once, in JAX, by ``rdher_jax.envs.fetch``.
+observation itself is assembled once, in JAX, by ``fetch``.
 """
 
 from __future__ import annotations
 
-import dataclasses
-
 import mujoco
 import numpy as np
 
-from rdher_jax.tasks import TASK_NAMES
-
+from .registry import TaskSpec, task_spec
 from .scene import load_model
 
 N_SUBSTEPS = 20
@@ -47,100 +42,6 @@ for _name, _n in RAW_FIELDS:
     RAW_SLICES[_name] = slice(_o, _o + _n)
     _o += _n
 RAW_SIZE = _o
-
-
-@dataclasses.dataclass(frozen=True)
-class TaskSpec:
-    """Constants of one Fetch task, as in gymnasium-robotics ``Fetch*-v4`` (and, for the moving
-    tasks, as in DHER's ``DyFetchEnv``).
-
-    The fields after ``distance_threshold`` only matter for the moving tasks:
-      scene: the gymnasium-robotics scene whose model and ``_env_setup`` the task uses
-        ("": the task's own name).
-      goal_speed: metres per env step the goal moves along ``goal_direction`` (0: static goal).
-      goal_direction: unit direction of the goal's motion, the same for every episode.
-      goal_z: if set, every sampled goal gets this height (Dy-Reaching: 0.5).
-      object_x_offset: if set, the object starts at the gripper's xy + (offset, U(+-obj_range)),
-        without rejection sampling (Dy-Pushing: 0.1).
-    """
-
-    name: str
-    has_object: bool
-    block_gripper: bool
-    gripper_extra_height: float
-    target_in_the_air: bool
-    target_offset: tuple[float, float, float]
-    obj_range: float
-    target_range: float
-    initial_qpos: dict
-    distance_threshold: float = 0.05
-    scene: str = ""
-    goal_speed: float = 0.0
-    goal_direction: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    goal_z: float | None = None
-    object_x_offset: float | None = None
-
-    @property
-    def scene_name(self) -> str:
-        return self.scene or self.name
-
-    @property
-    def moving(self) -> bool:
-        return any(self.goal_direction)
-
-
-_PUSH_QPOS = {
-    "robot0:slide0": 0.405,
-    "robot0:slide1": 0.48,
-    "robot0:slide2": 0.0,
-    "object0:joint": [1.25, 0.53, 0.4, 1.0, 0.0, 0.0, 0.0],
-}
-
-TASKS: dict[str, TaskSpec] = {
-    "FetchReach": TaskSpec(
-        "FetchReach", False, True, 0.2, True, (0.0, 0.0, 0.0), 0.15, 0.15,
-        {"robot0:slide0": 0.4049, "robot0:slide1": 0.48, "robot0:slide2": 0.0},
-    ),
-    "FetchPush": TaskSpec(
-        "FetchPush", True, True, 0.0, False, (0.0, 0.0, 0.0), 0.15, 0.15, _PUSH_QPOS
-    ),
-    "FetchSlide": TaskSpec(
-        "FetchSlide", True, True, -0.02, False, (0.4, 0.0, 0.0), 0.1, 0.3,
-        {
-            "robot0:slide0": 0.05,
-            "robot0:slide1": 0.48,
-            "robot0:slide2": 0.0,
-            "object0:joint": [1.7, 1.1, 0.41, 1.0, 0.0, 0.0, 0.0],
-        },
-    ),
-    "FetchPickAndPlace": TaskSpec(
-        "FetchPickAndPlace", True, False, 0.2, True, (0.0, 0.0, 0.0), 0.15, 0.15, _PUSH_QPOS
-    ),
-}
-
-
-# DHER's Dy-Reaching and Dy-Pushing (mengf1/DHER, dygym/dygym/envs/robotics/{reach,push}.py and
-# the DyReachEnv-v0 registration in dher/dher/ddpg_dher/experiment/train_dyreach.py).
-MOVING_TASKS: dict[str, TaskSpec] = {
-    "FetchReachMoving": dataclasses.replace(
-        TASKS["FetchReach"], name="FetchReachMoving", scene="FetchReach", target_range=0.10,
-        distance_threshold=0.01, goal_speed=0.011, goal_direction=(1.0, 0.0, 0.0), goal_z=0.5,
-    ),
-    "FetchPushMoving": dataclasses.replace(
-        TASKS["FetchPush"], name="FetchPushMoving", scene="FetchPush",
-        distance_threshold=0.01, goal_speed=0.005, goal_direction=(0.0, 1.0, 0.0),
-        object_x_offset=0.1,
-    ),
-}
-ALL_TASKS: dict[str, TaskSpec] = {**TASKS, **MOVING_TASKS}
-# The physics of exactly the tasks of the project's one task table, in its order.
-assert tuple(ALL_TASKS) == TASK_NAMES, (tuple(ALL_TASKS), TASK_NAMES)
-
-
-def check_task(name: str) -> TaskSpec:
-    if name not in ALL_TASKS:
-        raise ValueError(f"unknown Fetch task {name!r}; valid: {', '.join(ALL_TASKS)}")
-    return ALL_TASKS[name]
 
 
 def _set_joint_qpos(m: mujoco.MjModel, d: mujoco.MjData, name: str, value) -> None:
@@ -190,7 +91,7 @@ class Setup:
     """
 
     def __init__(self, task: str | TaskSpec, variant: str = "original"):
-        self.spec = task if isinstance(task, TaskSpec) else check_task(task)
+        self.spec = task if isinstance(task, TaskSpec) else task_spec(task)
         self.variant = variant
         m = load_model(self.spec.scene_name, variant)
         d = mujoco.MjData(m)

@@ -18,12 +18,8 @@ from collections.abc import Callable
 import mujoco
 import numpy as np
 
-TASK_XML = {
-    "FetchReach": "reach.xml",
-    "FetchPush": "push.xml",
-    "FetchSlide": "slide.xml",
-    "FetchPickAndPlace": "pick_and_place.xml",
-}
+from .notices import quiet_gymnasium_robotics, quiet_mjx
+from .registry import task_spec
 
 VARIANTS = ("original", "mjx")
 
@@ -52,10 +48,12 @@ PUCK_MESH = "object0:prism"
 
 def asset_path(task: str) -> str:
     """Path of the task's MJCF inside the installed gymnasium_robotics package."""
+    xml = task_spec(task).xml
+    quiet_gymnasium_robotics()
     import gymnasium_robotics
 
     root = os.path.dirname(gymnasium_robotics.__file__)
-    return os.path.join(root, "envs", "assets", "fetch", TASK_XML[task])
+    return os.path.join(root, "envs", "assets", "fetch", xml)
 
 
 def load_spec(task: str) -> mujoco.MjSpec:
@@ -199,8 +197,6 @@ def zero_mesh_margins(spec: mujoco.MjSpec, task: str) -> None:
     friction, solref and solimp that MuJoCo's mixing rules give the dynamic contact.
     """
     del task
-    from rdher_jax._quiet import quiet_mjx
-
     quiet_mjx()
     from mujoco.mjx._src import collision_driver  # the pair enumeration put_model checks
 

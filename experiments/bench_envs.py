@@ -53,6 +53,8 @@ from typing import Any
 
 import harness
 import numpy as np
+from rdher_jax.envs.notices import quiet_gymnasium_robotics
+from rdher_jax.envs.registry import task_spec
 
 from rdher_jax.tasks import PAPER_TASKS
 
@@ -140,10 +142,12 @@ def hardware() -> dict[str, Any]:
 # ----------------------------------------------------------------------------- gymnasium
 def gym_env(task: str):
     import gymnasium as gym
+
+    quiet_gymnasium_robotics()
     import gymnasium_robotics
 
     gym.register_envs(gymnasium_robotics)
-    env = gym.make(f"{task}-v4")
+    env = gym.make(task_spec(task).gymnasium_id)
     env.reset(seed=0)
     env.action_space.seed(0)
     return env

@@ -25,25 +25,30 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from rdher_jax.envs.notices import quiet_gymnasium_robotics
+from rdher_jax.envs.registry import GYMNASIUM_TASK_NAMES, task_spec
 
 HERE = Path(__file__).resolve().parent
-TASKS = ("FetchReach", "FetchPush", "FetchSlide", "FetchPickAndPlace")
+TASKS = GYMNASIUM_TASK_NAMES
 DEFAULT_OUT = HERE / "results" / "floor.md"
 
 
 def zero_action_success(task: str, episodes: int, first_seed: int = 0) -> np.ndarray:
-    """is_success at the last of 50 zero-action steps, one episode per reset seed."""
+    """is_success at the last of an episode's zero-action steps, one episode per reset seed."""
     import gymnasium as gym
+
+    quiet_gymnasium_robotics()
     import gymnasium_robotics
 
+    spec = task_spec(task)
     gym.register_envs(gymnasium_robotics)
-    env = gym.make(f"{task}-v4")
+    env = gym.make(spec.gymnasium_id)
     zero = np.zeros(env.action_space.shape, dtype=np.float32)
     out = np.zeros(episodes, dtype=bool)
     for i in range(episodes):
         env.reset(seed=first_seed + i)
         info = {}
-        for _ in range(50):
+        for _ in range(spec.episode_length):
             _, _, _, _, info = env.step(zero)
         out[i] = bool(info["is_success"])
     env.close()

@@ -1,23 +1,46 @@
-"""What each module of the package imports from the package: one line per module.
+"""What each module of the package imports from the package, one line per module, and the rules
+the graph keeps.
 
     python experiments/imports.py [repo root]   # default: this repository
 
-docs/design.md shows its output before and after the one-driver change. In-function imports
-count (they are still dependencies).
+The env package (``envs/``, installed as ``rdher_jax.envs``) is a group of its own. The rules,
+checked after the graph (exit status 1 on a violation; ``tests/test_packaging.py`` runs them):
+
+- ``envs`` imports nothing from ``rdher_jax`` outside itself;
+- no command line (``train``, ``sweep``, ``evaluate``) imports another;
+- no module but the task registry (``envs/registry.py``) and ``tasks`` (the trainer's table,
+  keyed by the registry's names) names a task: has a string that is a task's name (with or
+  without gymnasium's ``-v4``). Prose that mentions one (docstrings, help text, messages) is
+  documentation, not a second table.
+
+docs/design.md shows its output. In-function imports count (they are still dependencies).
 """
 
 from __future__ import annotations
 
 import ast
+import importlib.util
 import sys
 from pathlib import Path
+
+ENVS = "rdher_jax.envs"
+REGISTRY = "rdher_jax.envs.registry"
+CLI = ("rdher_jax.train", "rdher_jax.sweep", "rdher_jax.evaluate")
+# Modules allowed to name tasks: the registry, and the trainer's table keyed by its names.
+TASK_TABLES = (REGISTRY, "rdher_jax.tasks")
+# (module, task) pairs that may stay, and why.
+ALLOWED_TASK_NAMES = {
+    ("rdher_jax.config", "FetchReach"): "the default env=, checked against the registry as any",
+}
 
 
 def modules(root: Path) -> dict[str, Path]:
     out = {}
-    for base, pkg in ((root / "rdher_jax", "rdher_jax"), (root / "envs", "rdher_jax.envs")):
+    for base, pkg in ((root / "rdher_jax", "rdher_jax"), (root / "envs", ENVS)):
         for f in sorted(base.rglob("*.py")):
             rel = f.relative_to(base).with_suffix("")
+            if rel.parts[:1] == ("envs",) and pkg == "rdher_jax":
+                continue  # a checkout's link to envs/, listed as envs itself
             out[".".join([pkg] + [p for p in rel.parts if p != "__init__"])] = f
     return out
 
@@ -44,12 +67,65 @@ def graph(root: Path) -> dict[str, list[str]]:
     return out
 
 
-def main() -> None:
-    root = Path(sys.argv[1]) if len(sys.argv) > 1 else Path(__file__).resolve().parent.parent
+def task_names(root: Path) -> tuple[str, ...]:
+    """The registry's task names, each also with gymnasium's version suffix, read from
+    ``envs/registry.py`` under ``root`` (it imports nothing of the package); () where there is
+    none."""
+    path = root / "envs" / "registry.py"
+    if not path.exists():
+        return ()
+    spec = importlib.util.spec_from_file_location("_registry_under_check", path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod  # dataclasses resolves annotations through it
+    try:
+        spec.loader.exec_module(mod)
+    finally:
+        del sys.modules[spec.name]
+    return tuple(mod.TASK_NAMES) + tuple(f"{n}-{mod.GYMNASIUM_VERSION}" for n in mod.TASK_NAMES)
+
+
+def violations(root: Path) -> list[str]:
+    """Every break of the rules above, one line each."""
+    out = []
+    g = graph(root)
+    for name, deps in g.items():
+        if name == ENVS or name.startswith(ENVS + "."):
+            out += [f"{name} imports {d}, outside envs" for d in deps
+                    if not (d == ENVS or d.startswith(ENVS + "."))]
+        if name in CLI:
+            out += [f"command line {name} imports command line {d}" for d in deps if d in CLI]
+    names = set(task_names(root))
+    for name, f in modules(root).items():
+        if name in TASK_TABLES:
+            continue
+        for node in ast.walk(ast.parse(f.read_text(encoding="utf-8"))):
+            if not (isinstance(node, ast.Constant) and isinstance(node.value, str)):
+                continue
+            if node.value in names and (name, node.value) not in ALLOWED_TASK_NAMES:
+                out.append(f"{name}:{node.lineno} names task {node.value!r} outside the "
+                           "registry")
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    root = Path(argv[0]) if argv else Path(__file__).resolve().parent.parent
     short = lambda m: m.removeprefix("rdher_jax.")  # noqa: E731
-    for k, v in graph(root).items():
-        print(f"{short(k):18s} -> {', '.join(short(x) for x in v) or '-'}")
+    g = graph(root)
+    for title, envs in (("rdher_jax", False), ("envs (installed as rdher_jax.envs)", True)):
+        print(f"# {title}")
+        for k, v in g.items():
+            if (k == ENVS or k.startswith(ENVS + ".")) == envs:
+                print(f"{short(k):18s} -> {', '.join(short(x) for x in v) or '-'}")
+    bad = violations(root)
+    for line in bad:
+        print(f"violation: {line}")
+    if not bad:
+        allowed = "; ".join(f"{m} names {t}: {why}" for (m, t), why in ALLOWED_TASK_NAMES.items())
+        print(f"# rules kept: envs imports only envs; no command line imports another; task "
+              f"names only in {', '.join(map(short, TASK_TABLES))} (allowed: {allowed})")
+    return 1 if bad else 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -36,17 +36,19 @@ os.environ.setdefault("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 from rdher_jax.envs import scene  # noqa: E402
-from rdher_jax.envs.physics import TASKS as TASK_SPECS  # noqa: E402
+from rdher_jax.envs.notices import quiet_gymnasium_robotics  # noqa: E402
+from rdher_jax.envs.physics import N_SUBSTEPS  # noqa: E402
+from rdher_jax.envs.registry import GYMNASIUM_TASK_NAMES, task_spec  # noqa: E402
 
-N_STEPS = 50
-N_SUBSTEPS = 20
 REPLICA_STEPS, REPLICA_SEED = 20, 3  # the replica check: random steps after reset(seed=...)
 LAUNCH_XY, LAUNCH_SPEED = (1.2, 0.75), 1.0  # the Slide puck's launch test: start (m), speed (m/s)
 RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "scene_edits.md")
 
 
-# The task constants (gymnasium-robotics' MujocoFetch*Env arguments) are the env package's.
-TASKS = TASK_SPECS
+# The task constants (gymnasium-robotics' MujocoFetch*Env arguments) are the task registry's.
+TASKS = {name: task_spec(name) for name in GYMNASIUM_TASK_NAMES}
+# Steps per episode: one length for the four tasks (the studies' arrays assume it).
+(N_STEPS,) = {spec.episode_length for spec in TASKS.values()}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -315,10 +317,12 @@ def run_all(sim: FetchSim, task: str, eps: list[Episode], **kw) -> list:
 def check_replica(task: str, n_steps: int = REPLICA_STEPS) -> float:
     """Largest |obs difference| between the replica and gymnasium-robotics ``env.step``."""
     import gymnasium as gym
+
+    quiet_gymnasium_robotics()
     import gymnasium_robotics
 
     gym.register_envs(gymnasium_robotics)
-    env = gym.make(f"{task}-v4").unwrapped
+    env = gym.make(TASKS[task].gymnasium_id).unwrapped
     env.reset(seed=REPLICA_SEED)
     sim = FetchSim(scene.load_model(task), task)
     obj = None
@@ -556,8 +560,7 @@ def air_episode(rng: np.random.Generator) -> np.ndarray:
 
 def mjx_study(task: str = "FetchPush") -> dict:
     import jax
-
-    from rdher_jax._quiet import quiet_mjx
+    from rdher_jax.envs.notices import quiet_mjx
 
     quiet_mjx()
     from mujoco import mjx

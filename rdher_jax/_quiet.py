@@ -1,11 +1,4 @@
-"""Third-party imports: their notices kept off the user's terminal, and MJX kept off the native
-path.
-
-Two notices reach every command otherwise: MJX's optional Warp backend prints "Failed to import
-warp" and "Failed to import mujoco_warp" to stdout when Warp is absent (it is not used here), and
-gymnasium-robotics prints a notice about its Adroit hand tasks' rewards to stderr on import
-(through ``farama_notifications``). Each is removed at its source, before the first import of
-its package; any other output of those imports still shows.
+"""brax's normaliser imported without MJX, which the native path never runs.
 
 The learner uses one module of brax, its running-statistics normaliser, which needs only jax and
 flax; but ``import brax`` runs ``brax/__init__.py``, which imports ``brax.base`` and so MJX,
@@ -18,37 +11,11 @@ the package itself (``brax.State``, ``brax.base``, ...): then it runs in full, a
 
 from __future__ import annotations
 
-import contextlib
 import importlib.util
-import io
 import sys
 import types
 
-_WARP_NOTICES = ("Failed to import warp:", "Failed to import mujoco_warp:")
-
-
-def quiet_mjx() -> None:
-    """Import ``mujoco.mjx`` with Warp's absence notices dropped. Call it before any import of
-    MJX (or of something that imports it); a no-op once MJX is loaded."""
-    if "mujoco.mjx" not in sys.modules:
-        buf = io.StringIO()
-        with contextlib.redirect_stdout(buf):
-            import mujoco.mjx  # noqa: F401
-        rest = [ln for ln in buf.getvalue().splitlines(keepends=True)
-                if not ln.startswith(_WARP_NOTICES)]
-        sys.stdout.write("".join(rest))
-
-
-def quiet_imports() -> None:
-    """Drop gymnasium-robotics' Adroit notice before it is imported. Idempotent; a no-op once
-    ``gymnasium_robotics`` is loaded."""
-    if "gymnasium_robotics" not in sys.modules:
-        with contextlib.suppress(ImportError):
-            from farama_notifications import notifications
-
-            adroit = notifications.get("gymnasium_robotics", {})
-            for version in [v for v, text in adroit.items() if text.startswith("Adroit")]:
-                del adroit[version]
+from .envs.notices import quiet_mjx  # brax's __init__ imports MJX: quietly, as the envs do
 
 
 class _DeferredPackage(types.ModuleType):

@@ -20,55 +20,17 @@ callback, so what is cached there is what runs without it: the trainer's ``init`
 
 from __future__ import annotations
 
-import hashlib
-import importlib.metadata
-import os
-import platform
 from pathlib import Path
 
-ENV_VAR = "RDHER_JAX_CACHE_DIR"
+# The root and the host key are the env package's: its FFI library is kept under them too.
+from .envs.cache import ENV_VAR as ENV_VAR
+from .envs.cache import default_root, host_key
+
 # Programs that compile faster than this are not written: reading one back costs about as much.
 MIN_COMPILE_SECS = 0.5
 # The directory's size bound; JAX evicts the least recently used entries beyond it (an entry
 # is 0.1-1 MB on a CPU).
 MAX_BYTES = 1 << 30
-
-
-def default_root() -> Path:
-    if os.environ.get(ENV_VAR):
-        return Path(os.environ[ENV_VAR]).expanduser()
-    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
-    return Path(base).expanduser() / "rdher_jax"
-
-
-def _cpuinfo() -> tuple[str, str]:
-    """(model name, sorted instruction-set flags) of this host's first CPU; empty strings where
-    /proc/cpuinfo is not there (then platform.processor() stands for both)."""
-    model = flags = ""
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
-            for line in f:
-                key, _, value = line.partition(":")
-                key = key.strip().lower()
-                if key == "model name" and not model:
-                    model = value.strip()
-                elif key in ("flags", "features") and not flags:
-                    flags = " ".join(sorted(value.split()))
-                if model and flags:
-                    break
-    except OSError:
-        pass
-    return model or platform.processor(), flags
-
-
-def host_key(cpuinfo: tuple[str, str] | None = None) -> str:
-    """16 hex digits naming what a cached CPU executable depends on beyond JAX's own key."""
-    # The installed versions, read without importing JAX (rdher_jax.ffi_build keys its library
-    # with this before JAX is imported).
-    version = importlib.metadata.version
-    model, flags = cpuinfo if cpuinfo is not None else _cpuinfo()
-    parts = [platform.machine(), model, flags, version("jax"), version("jaxlib")]
-    return hashlib.sha256("\n".join(parts).encode()).hexdigest()[:16]
 
 
 def cache_dir(root: str | Path | None = None) -> Path:

@@ -127,9 +127,9 @@ def fetch_camera():
     """A free ``MjvCamera`` set as gymnasium-robotics' ``MujocoFetchEnv`` sets its renderer's."""
     import mujoco
 
-    from rdher_jax._quiet import quiet_imports
+    from rdher_jax.envs.notices import quiet_gymnasium_robotics
 
-    quiet_imports()
+    quiet_gymnasium_robotics()
     from gymnasium_robotics.envs.fetch.fetch_env import DEFAULT_CAMERA_CONFIG
 
     cam = mujoco.MjvCamera()

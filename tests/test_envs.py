@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from helpers import scripted_action
 from rdher_jax.envs import GYMNASIUM_TASK_NAMES
+from rdher_jax.envs.registry import task_spec
 
 from rdher_jax import make_env
 
@@ -21,7 +22,7 @@ OBS_KEYS = ("observation", "achieved_goal", "desired_goal")
 
 def _gym(task, seed):
     """gymnasium-robotics' env, reset with ``seed``: its own float64 state is the start."""
-    genv = gym.make(task + "-v4").unwrapped
+    genv = gym.make(task_spec(task).gymnasium_id).unwrapped
     genv.reset(seed=seed)
     return genv
 
@@ -90,7 +91,7 @@ def test_reset_to_keeps_float64_state_exactly():
 
 def test_setup_matches_gymnasium_robotics(native):
     task, env = native
-    genv = gym.make(task + "-v4").unwrapped
+    genv = gym.make(task_spec(task).gymnasium_id).unwrapped
     genv.reset(seed=0)
     np.testing.assert_array_equal(env.setup.initial_gripper_xpos, genv.initial_gripper_xpos)
     np.testing.assert_array_equal(env.setup.init_qpos, genv.initial_qpos)
@@ -108,7 +109,7 @@ def test_sampling_ranges_match(native):
     spec, grip0 = env.spec, env.setup.initial_gripper_xpos
     keys = jax.random.split(jax.random.PRNGKey(1), 512)
     st = jax.jit(jax.vmap(env.reset))(keys)
-    genv = gym.make(task + "-v4").unwrapped
+    genv = gym.make(task_spec(task).gymnasium_id).unwrapped
     gym_obs = [genv.reset(seed=s)[0] for s in range(64)]
 
     def check(goals, objs):

@@ -18,6 +18,7 @@ import jax
 import numpy as np
 import pytest
 from rdher_jax.envs import GYMNASIUM_TASK_NAMES
+from rdher_jax.envs.registry import task_spec
 
 from rdher_jax import make_env
 
@@ -40,7 +41,7 @@ def samples(task: str, n: int) -> dict[str, dict[str, np.ndarray]]:
     env = make_env(task, backend="mujoco")
     st = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(2024), n))
     ours = {"goal": np.asarray(st.obs["desired_goal"], np.float64)}
-    genv = gym.make(task + "-v4").unwrapped
+    genv = gym.make(task_spec(task).gymnasium_id).unwrapped
     obs = [genv.reset(seed=s)[0] for s in range(n)]
     theirs = {"goal": np.stack([o["desired_goal"] for o in obs]).astype(np.float32)
               .astype(np.float64)}

@@ -9,8 +9,9 @@ import mujoco
 import numpy as np
 import pytest
 from rdher_jax.envs import scene
+from rdher_jax.envs.registry import GYMNASIUM_TASK_NAMES
 
-TASKS = tuple(scene.TASK_XML)
+TASKS = GYMNASIUM_TASK_NAMES
 ENV_BODIES = ("object0", "robot0:gripper_link", "robot0:mocap")
 ENV_JOINTS = (
     "robot0:l_gripper_finger_joint",

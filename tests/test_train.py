@@ -359,10 +359,11 @@ def _python(code: str) -> subprocess.CompletedProcess:
 
 def test_no_third_party_import_chatter():
     """MJX's Warp-absence notices and gymnasium-robotics' Adroit notice are dropped at their
-    source (brax's and the MJX backend's import of MJX included); anything else those imports
-    print would still show."""
+    source (brax's and the MJX backend's import of MJX, and the scenes' of gymnasium-robotics,
+    included); anything else those imports print would still show."""
     code = ("import rdher_jax.train, rdher_jax.sweep, rdher_jax.evaluate, rdher_jax.envs, "
-            "rdher_jax.envs.native, rdher_jax.ddpg, gymnasium_robotics, brax; brax.State; "
+            "rdher_jax.envs.native, rdher_jax.ddpg, brax; brax.State; "
+            "from rdher_jax.envs import TASK_NAMES, scene; scene.asset_path(TASK_NAMES[0]); "
             "import rdher_jax.envs.mjx_backend; print('ok')")
     p = _python(code)
     assert p.stdout == "ok\n" and p.stderr == "", (p.stdout, p.stderr)

@@ -10,11 +10,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from rdher_jax.envs import EPISODE_LENGTH
+from rdher_jax.envs.registry import TASKS
 
 from rdher_jax import render
 
-TINY_RUN = ["env=FetchReach", "epochs=1", "n_cycles=1", "n_batches=2", "batch_size=32",
+TASK = "FetchReach"
+EPISODE_LENGTH = TASKS[TASK].episode_length
+TINY_RUN = [f"env={TASK}", "epochs=1", "n_cycles=1", "n_batches=2", "batch_size=32",
             "buffer_size=2000", "n_test_rollouts=1", "hidden=16", "progress=false"]
 
 
