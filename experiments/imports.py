@@ -2,6 +2,7 @@
 the graph keeps.
 
     python experiments/imports.py [repo root]   # default: this repository
+    python experiments/imports.py --write       # and put it into docs/design.md
 
 The env package (``envs/``, installed as ``rdher_jax.envs``) is a group of its own. The rules,
 checked after the graph (exit status 1 on a violation; ``tests/test_packaging.py`` runs them):
@@ -107,23 +108,49 @@ def violations(root: Path) -> list[str]:
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    root = Path(argv[0]) if argv else Path(__file__).resolve().parent.parent
+BEGIN, END = "<!-- imports.py: begin -->", "<!-- imports.py: end -->"
+DOC = Path("docs") / "design.md"
+
+
+def report(root: Path) -> tuple[str, list[str]]:
+    """The graph and the rules' verdict as text, and the violations."""
     short = lambda m: m.removeprefix("rdher_jax.")  # noqa: E731
     g = graph(root)
+    lines = []
     for title, envs in (("rdher_jax", False), ("envs (installed as rdher_jax.envs)", True)):
-        print(f"# {title}")
-        for k, v in g.items():
-            if (k == ENVS or k.startswith(ENVS + ".")) == envs:
-                print(f"{short(k):18s} -> {', '.join(short(x) for x in v) or '-'}")
+        lines.append(f"# {title}")
+        lines += [f"{short(k):18s} -> {', '.join(short(x) for x in v) or '-'}"
+                  for k, v in g.items() if (k == ENVS or k.startswith(ENVS + ".")) == envs]
     bad = violations(root)
-    for line in bad:
-        print(f"violation: {line}")
+    lines += [f"violation: {line}" for line in bad]
     if not bad:
         allowed = "; ".join(f"{m} names {t}: {why}" for (m, t), why in ALLOWED_TASK_NAMES.items())
-        print(f"# rules kept: envs imports only envs; no command line imports another; task "
-              f"names only in {', '.join(map(short, TASK_TABLES))} (allowed: {allowed})")
+        lines.append(f"# rules kept: envs imports only envs; no command line imports another; "
+                     f"task names only in {', '.join(map(short, TASK_TABLES))} "
+                     f"(allowed: {allowed})")
+    return "\n".join(lines) + "\n", bad
+
+
+def with_graph(doc: str, text: str) -> str:
+    """``doc`` (docs/design.md) with the block between its markers replaced by ``text``."""
+    head, rest = doc.split(BEGIN, 1)
+    _, tail = rest.split(END, 1)
+    return f"{head}{BEGIN}\n```\n{text}```\n{END}{tail}"
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``imports.py [root] [--write]``: print the graph; ``--write`` also puts it into
+    docs/design.md between its markers. Exit 1 on a broken rule."""
+    argv = sys.argv[1:] if argv is None else argv
+    write = "--write" in argv
+    paths = [a for a in argv if a != "--write"]
+    root = Path(paths[0]) if paths else Path(__file__).resolve().parent.parent
+    text, bad = report(root)
+    print(text, end="")
+    if write:
+        doc = root / DOC
+        doc.write_text(with_graph(doc.read_text(encoding="utf-8"), text), encoding="utf-8")
+        print(f"wrote {doc}")
     return 1 if bad else 0
 
 

@@ -69,7 +69,7 @@ def setup(s: Startup) -> Started:
     can no longer take effect (host devices once JAX's backend is up) are left as they are, and
     what needs them reports it (``executor.overlap_devices``)."""
     if s.ffi:
-        from .ffi_build import start
+        from .envs.ffi_build import start
 
         start()
     import jax

@@ -75,3 +75,12 @@ def test_the_registry_imports_neither_jax_nor_mujoco():
             "print(sorted(m for m in sys.modules if m.split('.')[0] in ('jax', 'mujoco')))")
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert p.returncode == 0 and p.stdout == "[]\n", (p.stdout, p.stderr)
+
+
+def test_design_doc_shows_the_current_import_graph():
+    """docs/design.md's graph is the one experiments/imports.py prints for this tree."""
+    imports = _imports_script()
+    doc = (ROOT / imports.DOC).read_text(encoding="utf-8")
+    text, _ = imports.report(ROOT)
+    assert imports.with_graph(doc, text) == doc, (
+        "docs/design.md's import graph is stale: python experiments/imports.py --write")
