@@ -229,11 +229,6 @@ def test_resume_config(tmp_path: Path) -> None:
         resume_config(parse_args(argv), argv)
 
 
-def test_env_names_match_env_package() -> None:
-    envs = pytest.importorskip("rdher_jax.envs")
-    assert set(envs.TASK_NAMES) == set(ENV_NAMES)
-
-
 @pytest.mark.parametrize(
     "env, algo, want",
     [("FetchReach", "rdher", (2.0, 1.0)), ("FetchPickAndPlace", "rdher", (2.0, 1.0)),
