@@ -43,6 +43,8 @@ from __future__ import annotations
 import argparse
 import fnmatch
 import functools
+import json
+import math
 import re
 import statistics
 import sys
@@ -93,11 +95,28 @@ def run_info(ref: str) -> dict:
     return setting(ref).meta
 
 
+COLUMN_MEASURES = ("combined", "combined_run", *report.BIAS_COLS)
+
+
 def seeds(ref: str, measure: str) -> dict[int, float]:
-    """Per seed, ``measure`` of setting ``ref`` (a rate in [0, 1])."""
-    if measure not in MEASURES:
-        raise KeyError(f"no measure {measure!r} (one of {', '.join(MEASURES)})")
-    return report.per_seed(setting(ref))[measure]
+    """Per seed, ``measure`` of setting ``ref``, in the units the prose quotes it in: report.py's
+    rates in % (``best``, ``final``, ``mean``, ``policy``); ``combined``, the share of DHER-
+    combined rows in a batch (``frac_dher``), mean of the last 3 epochs, in %, and
+    ``combined_run`` the same over every epoch; a bias column (``bias_real``, ...), mean of its
+    finite values over the last 3 epochs, as summary.md's diagnostic."""
+    if measure in MEASURES:
+        return {k: 100 * v for k, v in report.per_seed(setting(ref))[measure].items()}
+    if measure not in COLUMN_MEASURES:
+        raise KeyError(f"no measure {measure!r} (one of {', '.join(MEASURES + COLUMN_MEASURES)})")
+    col = "frac_dher" if measure.startswith("combined") else measure
+    scale = 100 if col == "frac_dher" else 1
+    last = None if measure == "combined_run" else report.LAST
+    out = {}
+    for k, v in setting(ref).column(col).items():
+        xs = [x for x in (v if last is None else v[-last:]) if math.isfinite(x)]
+        if xs:
+            out[k] = scale * statistics.fmean(xs)
+    return out
 
 
 def _over_seeds(ref: str, measure: str, stat: str) -> float:
@@ -106,37 +125,38 @@ def _over_seeds(ref: str, measure: str, stat: str) -> float:
         raise KeyError(f"{ref} has no {measure!r} figures")
     st = report.stat(list(xs.values()))
     if stat == "mean":
-        return 100 * st.mean
+        return st.mean
     if stat == "sd":
-        return 100 * st.std
+        return st.std
     if stat == "lo":
-        return 100 * max(st.lo, 0.0)
+        return max(st.lo, 0.0)
     if stat == "hi":
-        return 100 * min(st.hi, 1.0)
+        return min(st.hi, 100.0)
     if stat == "n":
         return len(xs)
     if stat == "min":
-        return 100 * min(xs.values())
+        return min(xs.values())
     if stat == "max":
-        return 100 * max(xs.values())
+        return max(xs.values())
     if re.fullmatch(r"s\d+", stat):
         if int(stat[1:]) not in xs:
             raise KeyError(f"{ref} has no seed {stat[1:]}")
-        return 100 * xs[int(stat[1:])]
+        return xs[int(stat[1:])]
     raise KeyError(f"no statistic {stat!r} (mean, sd, lo, hi, n, min, max, s<seed>)")
 
 
 def _versus(a: str, b: str, measure: str, test: list[str]) -> float:
-    if "/" not in b:
-        b = a.rsplit("/", 1)[0] + "/" + b
-    xs, ys = seeds(a, measure), seeds(b, measure)
+    """As report.py tests two settings: on the rates (rounded as report.welch rounds them)."""
+    scale = 1 if measure in report.BIAS_COLS else 100
+    xs = {k: v / scale for k, v in seeds(a, measure).items()}
+    ys = {k: v / scale for k, v in seeds(b, measure).items()}
     if test in ([], ["p"]):
         diff, p = report.welch(list(xs.values()), list(ys.values()))
     elif test in (["paired"], ["paired", "p"]):
         diff, p, _ = report.paired(xs, ys)
     else:
         raise KeyError(f"no test {':'.join(test)!r} (nothing, p, paired, paired:p)")
-    return p if test[-1:] == ["p"] else 100 * diff
+    return p if test[-1:] == ["p"] else scale * diff
 
 
 def _expand(ref: str) -> list[str]:
@@ -164,7 +184,9 @@ def systematic(name: str) -> float:
         over, rest = rest[-1], rest[:-1]
     if "-" in ref:
         a, b = ref.split("-", 1)
-        vals = [_versus(x, b, measure, rest) for x in _expand(a)]
+        if "/" not in b:
+            b = a.rsplit("/", 1)[0] + "/" + b
+        vals = [_versus(x, y, measure, rest) for x in _expand(a) for y in _expand(b) if x != y]
     else:
         stat = rest[0] if rest else "mean"
         if len(rest) > 1:
@@ -187,142 +209,179 @@ def per_run_s(ref: str) -> float:
     return float(run_info(ref)["wall_clock_per_run_s"])
 
 
-def piece_minutes(ref: str) -> list[float]:
-    """Minutes per run of each one-seed piece of a setting run in pieces."""
-    return [float(p["wall_clock_s"]) / int(p["runs"]) / 60 for p in run_info(ref)["pieces"]]
+def read_rows(path: Path) -> list[dict[str, str]]:
+    """The rows with a test success of a metrics CSV."""
+    import csv
+
+    with open(path, newline="", encoding="utf-8") as f:
+        return [r for r in csv.DictReader(f) if r.get("test_success", "") != ""]
 
 
-def epochs_at(ref: str, seed: int, col: str = "test_success") -> list[float]:
-    return [report._float(r.get(col, "")) for r in setting(ref).runs[seed]]
+def success(rows: list[dict[str, str]]) -> list[float]:
+    return [float(r["test_success"]) for r in rows]
 
 
 def same_epochs(refs: list[str], seed: int) -> int:
     """Epochs of ``seed`` on which every setting of ``refs`` has the same test success."""
-    curves = [epochs_at(r, seed) for r in refs]
+    curves = [success(setting(r).runs[seed]) for r in refs]
     return sum(len({round(c[i], 6) for c in curves}) == 1 for i in range(min(map(len, curves))))
 
 
-def design_card() -> list[dict[str, str]]:
-    import csv
-
-    with open(RESULTS / "design_card" / "FetchSlide" / "metrics.csv", newline="",
-              encoding="utf-8") as f:
-        return [r for r in csv.DictReader(f) if r.get("test_success", "") != ""]
+def window_mean(rows: list[dict[str, str]], lo: float, hi: float, col: str = "test_success"
+                ) -> float:
+    """Mean of ``col`` over the epochs whose env steps end in (lo, hi]."""
+    return statistics.fmean(float(r[col]) for r in rows if lo < float(r["env_steps"]) <= hi)
 
 
-def _card_success() -> list[float]:
-    return [float(r["test_success"]) for r in design_card()]
+def hit(rows: list[dict[str, str]], threshold: float) -> dict | None:
+    """bench_learning's first epoch whose trailing mean of 3 reaches ``threshold``."""
+    import bench_learning
+
+    return (bench_learning.first_hit(rows, threshold, 3) or {}).get("window")
 
 
 @dataclass(frozen=True)
 class Named:
     fn: Callable[[], float | str]
     doc: str
+    source: str  # under experiments/results
 
 
 NAMED: dict[str, Named] = {}
 
 
-def named(name: str, doc: str) -> Callable[[Callable[[], float | str]], Callable[[], float | str]]:
-    def deco(fn: Callable[[], float | str]) -> Callable[[], float | str]:
-        NAMED[name] = Named(fn, doc)
-        return fn
-    return deco
+def add(name: str, source: str, doc: str, fn: Callable[[], float | str]) -> None:
+    NAMED[name] = Named(fn, doc, source)
 
 
-# Sets of settings the prose quotes together.
+CARD = "design_card/FetchSlide"
+PUSHM3 = "moving_goals/pushmoving_fast"
 PUSH_FLOOR = ["bp/push/ddpg", "bp/push/dher", "bp/push/rdher", "bp/push/cher"]
 PNP_PAIRS = [f"ap/pnp/{n}" for n in ("rdher_lr0.5_lh4", "rdher_lr1_lh2", "rdher_lr1_lh4",
                                      "rdher_lr2_lh1", "rdher_lr4_lh0.5", "rdher_lr4_lh1")]
+TABLE2 = [f"bp/{t}/{a}" for t in ("slide", "pnp") for a in ("ddpg", "her", "cher", "dher",
+                                                             "rdher")]
 
 
-@named("card:best", "design card: best 10-episode test success (a rate)")
-def _card_best() -> float:
-    return max(_card_success())
+def _card() -> list[dict[str, str]]:
+    return read_rows(RESULTS / CARD / "metrics.csv")
 
 
-@named("card:best_epoch", "design card: the epoch (as logged, from 1) of the best test success")
-def _card_best_epoch() -> float:
-    rows = design_card()
-    best = max(_card_success())
-    return float(next(r["epoch"] for r in rows if float(r["test_success"]) == best))
+def _pushm3() -> list[dict[str, str]]:
+    return read_rows(RESULTS / PUSHM3 / "dher_frac0.2_s3.csv")
 
 
-@named("card:last", "design card: the last epoch's test success (a rate)")
-def _card_last() -> float:
-    return _card_success()[-1]
+def _bl(name: str) -> dict:
+    return json.loads((RESULTS / "bench_learning" / f"{name}.json").read_text(encoding="utf-8"))
 
 
-@named("card:final", "design card: mean of the last 3 epochs' test success (report.py's final)")
-def _card_final() -> float:
-    return statistics.fmean(_card_success()[-report.LAST:])
+def _idle_pace() -> float:
+    """Env steps a minute of push-fast-idle's seed 0, to 0.9 (mean of 3)."""
+    w = _bl("push-fast-idle")["results"]["0"]["hits"]["0.9"]["window"]
+    return w["env_steps"] / (w["wall_s"] / 60)
 
 
-@named("card:last10", "design card: mean of the last 10 epochs' test success")
-def _card_last10() -> float:
-    return statistics.fmean(_card_success()[-10:])
+def _paced_minutes() -> list[float]:
+    """Seeds 1-4 of preset=fast on FetchPush (timed beside other work): their steps to 0.9
+    (mean of 3) at seed 0's idle pace, in minutes."""
+    steps = [r["hits"]["0.9"]["window"]["env_steps"]
+             for name in ("push-fast-overlap", "push-fast-overlap-more")
+             for k, r in _bl(name)["results"].items() if k != "0"]
+    return [n / _idle_pace() for n in steps]
 
 
-@named("card:wall", "design card: the run's wall clock (metrics.csv, wall_time of the last epoch)")
-def _card_wall() -> str:
-    return minutes_seconds(float(design_card()[-1]["wall_time"]))
+def _her_hits() -> list[dict | None]:
+    return [hit(rows, 0.9) for rows in setting("bc/push/her").runs.values()]
 
+
+add("card:best", CARD, "design card: best 10-episode test success (a rate)",
+    lambda: max(success(_card())))
+add("card:best_epoch", CARD, "design card: the epoch (as logged, from 1) of the best test "
+    "success", lambda: float(next(r["epoch"] for r in _card()
+                                  if float(r["test_success"]) == max(success(_card())))))
+add("card:last", CARD, "design card: the last epoch's test success (a rate)",
+    lambda: success(_card())[-1])
+add("card:final", CARD, "design card: mean of the last 3 epochs' test success (report.py's "
+    "final; a rate)", lambda: statistics.fmean(success(_card())[-report.LAST:]))
+add("card:last10", CARD, "design card: mean of the last 10 epochs' test success (a rate)",
+    lambda: statistics.fmean(success(_card())[-10:]))
+add("card:wall", CARD, "design card: the run's wall clock (wall_time of the last epoch)",
+    lambda: minutes_seconds(float(_card()[-1]["wall_time"])))
+
+for _lo, _hi, _key in ((0, 100_000, "w1"), (100_000, 200_000, "w2"), (200_000, 250_000, "w3")):
+    add(f"pushm3:{_key}", PUSHM3, f"FetchPushMoving, DHER at a 0.2 share, seed 3: mean test "
+        f"success over env steps ({_lo:,}, {_hi:,}] (a rate)",
+        functools.partial(lambda lo, hi: window_mean(_pushm3(), lo, hi), _lo, _hi))
+add("pushm3:best", PUSHM3, "the same run: best test success (a rate)",
+    lambda: max(success(_pushm3())))
+add("pushm3:last", PUSHM3, "the same run: the last epoch's test success (a rate)",
+    lambda: success(_pushm3())[-1])
+add("pushm3:final", PUSHM3, "the same run: mean of the last 3 epochs (a rate)",
+    lambda: statistics.fmean(success(_pushm3())[-report.LAST:]))
+add("pushm3:combined:min", PUSHM3, "the same run: lowest share of combined rows in a batch of "
+    "any epoch, %", lambda: 100 * min(float(r["frac_dher"]) for r in _pushm3()))
+add("pushm3:combined:max", PUSHM3, "the same run: highest share of combined rows, %",
+    lambda: 100 * max(float(r["frac_dher"]) for r in _pushm3()))
+add("pushm3:wall", PUSHM3, "the same run: its wall clock (wall_time of the last epoch)",
+    lambda: minutes_seconds(float(_pushm3()[-1]["wall_time"])))
 
 for _ref in ("bp/push/her", "bp/push/ddpg", "bp/push/dher", "bp/push/rdher", "bp/push/cher",
-             "bp/slide/her", "bp/slide/dher", "bp/slide/rdher", "bp/slide/ddpg",
-             "bp/slide/cher", "bp/pnp/her", "bp/pnp/dher", "bp/pnp/rdher", "bp/pnp/ddpg",
-             "bp/pnp/cher", "bp/reach/ddpg", "bp/reach/her", "bp/reach/rdher",
-             "bp/reach/cher", "bp/reach/dher", "bc/push/her", "bc/push/rdher"):
-    NAMED[f"{_ref}:wall"] = Named(functools.partial(lambda r: minutes_seconds(per_run_s(r)),
-                                                    _ref),
-                                  f"{_ref}: wall clock per run (run_info.json)")
-    NAMED[f"{_ref}:wall_min"] = Named(functools.partial(lambda r: per_run_s(r) / 60, _ref),
-                                      f"{_ref}: minutes per run (run_info.json)")
+             *TABLE2, "bp/reach/ddpg", "bp/reach/her", "bp/reach/rdher", "bp/reach/cher",
+             "bp/reach/dher", "bc/push/her", "bc/push/rdher", "yp/push/dher_plain",
+             "yp/push/rdher_plain"):
+    add(f"{_ref}:wall", KINDS[_ref[:2]] + "/" + TASKS[_ref.split("/")[1]] + "/"
+        + _ref.split("/")[2], f"{_ref}: wall clock per run (run_info.json)",
+        functools.partial(lambda r: minutes_seconds(per_run_s(r)), _ref))
+
+add("bp/push/*:wall_min:min", "benchmark/paper/FetchPush", "Push at the paper's budget: the "
+    "fewest minutes per run of any algorithm (run_info.json, wall_clock_per_run_s)",
+    lambda: min(per_run_s(r) for r in ["bp/push/her", *PUSH_FLOOR]) / 60)
+add("bp/push/*:wall_min:max", "benchmark/paper/FetchPush", "the same: the most",
+    lambda: max(per_run_s(r) for r in ["bp/push/her", *PUSH_FLOOR]) / 60)
+for _cpu, _key in (("AMD EPYC", "epyc"), ("Intel(R) Xeon(R) Processor", "xeon")):
+    for _f, _m in ((min, "min"), (max, "max")):
+        add(f"bp/slide+pnp/{_key}:wall_min:{_m}", "benchmark/paper", f"Slide and PickAndPlace "
+            f"Table 2 runs on the {_key}: the {'fewest' if _m == 'min' else 'most'} minutes per "
+            "run of any algorithm", functools.partial(
+                lambda f, cpu: f(per_run_s(r) for r in TABLE2
+                                 if run_info(r)["hardware"]["processor"] == cpu) / 60, _f, _cpu))
+
+for _seed in range(3):
+    add(f"ap/pnp/*:same_epochs:s{_seed}", "ablation/paper/FetchPickAndPlace", f"PickAndPlace "
+        f"ablation: epochs of seed {_seed} on which all six pairs' test success is the same",
+        functools.partial(lambda k: same_epochs(PNP_PAIRS, k), _seed))
+
+add("bc/push/her:to_0.9:min", "benchmark/cpu/FetchPush/her", "preset=fast HER on Push: the "
+    "fewest env steps of a seed to a trailing mean of 3 epochs of 0.9 (bench_learning's rule)",
+    lambda: min(h["env_steps"] for h in _her_hits() if h))
+add("bc/push/her:to_0.9:max", "benchmark/cpu/FetchPush/her", "the same: the most",
+    lambda: max(h["env_steps"] for h in _her_hits() if h))
+add("bc/push/her:to_0.9:n", "benchmark/cpu/FetchPush/her", "the same: seeds that get there",
+    lambda: sum(h is not None for h in _her_hits()))
+add("bc/push/her:to_0.9:never", "benchmark/cpu/FetchPush/her", "the same: the seeds that never "
+    "do, as 'seed K' or 'seeds K, L'", lambda: (lambda ks: f"seed{'s' * (len(ks) > 1)} "
+                                                + ", ".join(ks))(
+    [str(k) for k, h in zip(setting("bc/push/her").runs, _her_hits(), strict=True) if not h]))
+add("bl/push-fast-idle:to_0.9_min", "bench_learning/push-fast-idle.json", "preset=fast on Push, "
+    "seed 0 alone on the idle Intel Xeon: minutes to a trailing mean of 3 epochs of 0.9",
+    lambda: _bl("push-fast-idle")["results"]["0"]["hits"]["0.9"]["window"]["wall_s"] / 60)
+add("bl/push-fast:paced_min:min", "bench_learning", "preset=fast on Push, seeds 1-4 (timed "
+    "beside other work): the fewest minutes to 0.9 (mean of 3) at seed 0's idle pace",
+    lambda: min(_paced_minutes()))
+add("bl/push-fast:paced_min:max", "bench_learning", "the same: the most",
+    lambda: max(_paced_minutes()))
 
 
-@named("bp/push/pieces:wall_min:min", "Push, paper budget: fewest minutes per run of any "
-       "setting (per-setting wall clock per run)")
-def _push_min() -> float:
-    return min(per_run_s(r) for r in ["bp/push/her", *PUSH_FLOOR]) / 60
-
-
-@named("bp/push/pieces:wall_min:max", "Push, paper budget: most minutes per run of any setting")
-def _push_max() -> float:
-    return max(per_run_s(r) for r in ["bp/push/her", *PUSH_FLOOR]) / 60
-
-
-@named("bp/slide+pnp/epyc:wall_min:min", "Slide and PickAndPlace Table 2 runs on the AMD EPYC: "
-       "fewest minutes per run")
-def _epyc_min() -> float:
-    return min(_epyc_slide_pnp()) / 60
-
-
-@named("bp/slide+pnp/epyc:wall_min:max", "Slide and PickAndPlace Table 2 runs on the AMD EPYC: "
-       "most minutes per run")
-def _epyc_max() -> float:
-    return max(_epyc_slide_pnp()) / 60
-
-
-def _epyc_slide_pnp() -> list[float]:
-    return [per_run_s(r) for t in ("slide", "pnp") for a in ("ddpg", "her", "cher", "dher",
-                                                             "rdher")
-            if run_info(r := f"bp/{t}/{a}")["hardware"]["processor"] == "AMD EPYC"]
-
-
-@named("ap/pnp/pairs:same_epochs:s0", "PickAndPlace ablation: epochs of seed 0 on which the six "
-       "pairs' test success is the same")
-def _pnp_same0() -> float:
-    return same_epochs(PNP_PAIRS, 0)
-
-
-@named("ap/pnp/pairs:same_epochs:s1", "the same, seed 1")
-def _pnp_same1() -> float:
-    return same_epochs(PNP_PAIRS, 1)
-
-
-@named("ap/pnp/pairs:same_epochs:s2", "the same, seed 2")
-def _pnp_same2() -> float:
-    return same_epochs(PNP_PAIRS, 2)
+def source(name: str) -> Path:
+    """The committed file or directory figure ``name`` comes from (what its link must name): a
+    setting's directory, for a glob its task's, for a named figure its own ``source``."""
+    if name in NAMED:
+        return RESULTS / NAMED[name].source
+    ref = name.split(":")[0].split("-")[0]
+    if any(c in ref for c in "*?["):
+        kind, task, _ = ref.split("/")
+        return RESULTS / KINDS[kind] / TASKS[task]
+    return setting_dir(ref)
 
 
 def value(name: str) -> float | str:
