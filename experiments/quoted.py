@@ -21,13 +21,18 @@ Names. A *setting* is ``<kind>/<task>/<setting>`` with the kind and profile abbr
 ``FetchPush``, ...), e.g. ``bp/slide/rdher`` is ``experiments/results/benchmark/paper/FetchSlide/
 rdher``. A *measure* is one of report.py's per-seed figures (:func:`report.per_seed`): ``best``
 (max over epochs of test success), ``final`` (mean of the last 3 epochs), ``mean`` (mean over
-all epochs), ``policy`` (the best policy retested); all in %.
+all epochs), ``policy`` (the best policy retested); all in %. Also ``combined`` (the share of
+DHER-combined rows in a batch, the CSVs' ``frac_dher``, mean of the last 3 epochs, %),
+``combined_run`` (the same over every epoch) and the bias columns (``bias_real``,
+``bias_unw_her``, ...: mean of the last 3 epochs, as summary.md's diagnostic).
 
 - ``S:M`` the mean over seeds of measure M of setting S; ``S:M:sd`` its sample std, ``S:M:lo``
   / ``S:M:hi`` its 95% t interval clipped to [0, 100] (as summary.md prints it), ``S:M:n`` the
-  seeds, ``S:M:s2`` seed 2's value, ``S:M:min`` / ``S:M:max`` the lowest / highest seed's.
+  seeds, ``S:M:s2`` seed 2's value, ``S:M:min`` / ``S:M:max`` the lowest / highest seed's,
+  ``S:M:ge50`` the number of seeds at 50 or above.
 - ``S-T:M`` the mean of S minus the mean of T (Welch), ``S-T:M:p`` Welch's two-sided p;
-  ``S-T:M:paired`` and ``S-T:M:paired:p`` the same paired by seed (:func:`report.paired`). T is
+  ``S-T:M:paired`` and ``S-T:M:paired:p`` the same paired by seed (:func:`report.paired`);
+  ``S-T:M:wins`` the seeds on which S is above T, ``S-T:M:common`` the seeds both hold. T is
   a setting, or a setting name alone for one of S's task (``bp/slide/rdher-her``).
 - A setting may be a glob over setting names (``ap/pnp/rdher_*``); then ``:min`` or ``:max``
   at the end takes the lowest or highest of the settings' figures
@@ -138,11 +143,13 @@ def _over_seeds(ref: str, measure: str, stat: str) -> float:
         return min(xs.values())
     if stat == "max":
         return max(xs.values())
+    if re.fullmatch(r"ge\d+", stat):
+        return sum(x >= int(stat[2:]) - 1e-4 for x in xs.values())
     if re.fullmatch(r"s\d+", stat):
         if int(stat[1:]) not in xs:
             raise KeyError(f"{ref} has no seed {stat[1:]}")
         return xs[int(stat[1:])]
-    raise KeyError(f"no statistic {stat!r} (mean, sd, lo, hi, n, min, max, s<seed>)")
+    raise KeyError(f"no statistic {stat!r} (mean, sd, lo, hi, n, min, max, s<seed>, ge<x>)")
 
 
 def _versus(a: str, b: str, measure: str, test: list[str]) -> float:
@@ -154,8 +161,13 @@ def _versus(a: str, b: str, measure: str, test: list[str]) -> float:
         diff, p = report.welch(list(xs.values()), list(ys.values()))
     elif test in (["paired"], ["paired", "p"]):
         diff, p, _ = report.paired(xs, ys)
+    elif test in (["wins"], ["common"]):
+        common = sorted(set(xs) & set(ys))
+        return float(len(common) if test == ["common"] else
+                     sum(report._rate(xs[k]) > report._rate(ys[k]) for k in common))
     else:
-        raise KeyError(f"no test {':'.join(test)!r} (nothing, p, paired, paired:p)")
+        raise KeyError(f"no test {':'.join(test)!r} (nothing, p, paired, paired:p, wins, "
+                       "common)")
     return p if test[-1:] == ["p"] else scale * diff
 
 
@@ -350,6 +362,23 @@ for _seed in range(3):
     add(f"ap/pnp/*:same_epochs:s{_seed}", "ablation/paper/FetchPickAndPlace", f"PickAndPlace "
         f"ablation: epochs of seed {_seed} on which all six pairs' test success is the same",
         functools.partial(lambda k: same_epochs(PNP_PAIRS, k), _seed))
+
+def _floor(task: str) -> dict:
+    rows = json.loads((RESULTS / "floor.json").read_text(encoding="utf-8"))["rows"]
+    return next(r for r in rows if r["task"] == task)
+
+
+for _abbr, _task in TASKS.items():
+    if _abbr in ("reach", "push", "slide", "pnp"):
+        add(f"floor/{_abbr}:zero", "floor.md", f"{_task}: success of a policy that does nothing "
+            "on 1,000 episodes, %", functools.partial(
+                lambda t: 100 * _floor(t)["zero_action_success"], _task))
+        for _n in (10, 20):
+            add(f"floor/{_abbr}:best{_n}", "floor.md", f"{_task}: the expected best of 50 "
+                f"epochs of {_n} test episodes of a policy that does nothing, %",
+                functools.partial(lambda t, n: 100 * _floor(t)[f"best_of_epochs_{n}"], _task,
+                                  _n))
+
 
 add("bc/push/her:to_0.9:min", "benchmark/cpu/FetchPush/her", "preset=fast HER on Push: the "
     "fewest env steps of a seed to a trailing mean of 3 epochs of 0.9 (bench_learning's rule)",
