@@ -13,8 +13,8 @@ link goes to the committed data it comes from (relative to the markdown file, as
 A figure not written so is hand-typed, and nothing checks it. The text of a numeric figure is
 compared at its own precision (``92`` quotes 91.67 correctly, ``91.6`` does not; a p of
 ``0.032`` is 0.0317 to three decimals; ``1.5e-07`` to two significant digits); a text figure
-(a wall clock such as ``33 min 16 s``) must match exactly. ``tests/test_quoted.py`` runs the
-check.
+(a wall clock such as ``33 min 16 s``) must match exactly, and the link must lead to the data the
+figure comes from (:func:`source`). ``tests/test_quoted.py`` runs the check.
 
 Names. A *setting* is ``<kind>/<task>/<setting>`` with the kind and profile abbreviated
 (:data:`KINDS`: ``bp`` = ``benchmark/paper``, ...) and the task too (:data:`TASKS`: ``push`` =
@@ -532,12 +532,15 @@ def same(a: str, b: str) -> bool:
 def problem(q: Quote, root: Path = ROOT) -> str | None:
     """What is wrong with the quoted figure ``q``, or None."""
     where = f"{q.path.relative_to(root) if q.path.is_relative_to(root) else q.path}:{q.line}"
-    if q.target and not (q.path.parent / q.target.split("#")[0]).exists():
-        return f"{where}: {q.name}: the link's target {q.target} does not exist"
     try:
         val = value(q.name)
+        src = source(q.name)
     except KeyError as e:
         return f"{where}: {q.name}: {e.args[0] if e.args else e}"
+    target = (q.path.parent / q.target.split("#")[0]).resolve()
+    if target != src.resolve():
+        return (f"{where}: {q.name}: the link goes to {q.target}, not to the data the figure "
+                f"comes from ({src.relative_to(ROOT)})")
     if isinstance(val, str):
         ok = q.text == val
     else:

@@ -1,6 +1,7 @@
 """The figures that RESULTS.md, README.md and the results READMEs quote in their prose, against
 the committed data they come from (experiments/quoted.py)."""
 
+import os
 import sys
 from pathlib import Path
 
@@ -26,17 +27,18 @@ def test_the_check_names_file_line_figure_text_and_value(tmp_path):
     if not (EXP / "results" / "benchmark").is_dir():
         pytest.skip("no committed experiment results")
     md = tmp_path / "README.md"
-    (tmp_path / "data").mkdir()
-    md.write_text("HER ends at\n[91.6](data \"q:bc/push/her:final\") and "
-                  "[92](data \"q:bc/push/her:final\"),\n"
-                  "[+1.0](data \"q:no/such:figure\"), [1.0](gone \"q:bc/push/her:final\").\n",
+    her = os.path.relpath(EXP / "results" / "benchmark" / "cpu" / "FetchPush" / "her", tmp_path)
+    md.write_text(f"HER ends at\n[91.6]({her} \"q:bc/push/her:final\") and "
+                  f"[92]({her}/ \"q:bc/push/her:final\"),\n"
+                  f"[+1.0]({her} \"q:no/such:figure\"), [91.7](. \"q:bc/push/her:final\").\n",
                   encoding="utf-8")
     n, bad = quoted.check([md], root=tmp_path)
     assert n == 4
     assert bad[0] == ("README.md:2: bc/push/her:final: the text says '91.6', the committed data "
                       f"give '91.7' ({quoted.value('bc/push/her:final')!r})")
     assert bad[1].startswith("README.md:3: no/such:figure: ")
-    assert bad[2] == ("README.md:3: bc/push/her:final: the link's target gone does not exist")
+    assert bad[2] == ("README.md:3: bc/push/her:final: the link goes to ., not to the data the "
+                      "figure comes from (experiments/results/benchmark/cpu/FetchPush/her)")
     assert len(bad) == 3
 
 
@@ -53,9 +55,12 @@ def test_the_write_command_mends_a_figure(tmp_path):
     if not (EXP / "results" / "benchmark").is_dir():
         pytest.skip("no committed experiment results")
     md = tmp_path / "x.md"
-    md.write_text("final [−1.0](. \"q:bp/slide/rdher-her:final\") (p [0.50](. "
+    rd = os.path.relpath(EXP / "results" / "benchmark" / "paper" / "FetchSlide" / "rdher",
+                         tmp_path)
+    md.write_text(f"final [−1.0]({rd} \"q:bp/slide/rdher-her:final\") (p [0.50]({rd} "
                   "\"q:bp/slide/rdher-her:final:p\"))\n", encoding="utf-8")
     assert quoted.write([md]) == 2
-    assert md.read_text(encoding="utf-8") == ("final [−17.3](. \"q:bp/slide/rdher-her:final\") "
-                                              "(p [0.03](. \"q:bp/slide/rdher-her:final:p\"))\n")
+    assert md.read_text(encoding="utf-8") == (
+        f"final [−17.3]({rd} \"q:bp/slide/rdher-her:final\") "
+        f"(p [0.03]({rd} \"q:bp/slide/rdher-her:final:p\"))\n")
     assert quoted.check([md], root=tmp_path)[1] == []
