@@ -417,6 +417,20 @@ for _task, _names in (("pushm", ("her", "dher", "dher_plain", "dher_f0.2")),
                     f"{_st} over seeds, %", functools.partial(_window, _ref, _k, _st))
 
 
+def _paper_s(ref: str) -> float:
+    """The paper's Table 3 wall clock of one run for ``ref``'s task and algorithm, in seconds."""
+    h, m, sec = report.paper_time(setting(ref).task, run_info(ref).get("algo")).split(":")
+    return 3600 * int(h) + 60 * int(m) + int(sec)
+
+
+REACH_TABLE3 = ["bp/reach/ddpg", "bp/reach/her", "bp/reach/rdher"]
+for _f in (min, max):
+    add(f"bp/reach/ddpg+her+rdher:table3_ratio:{_f.__name__}", "benchmark/paper/FetchReach",
+        "Reach at the paper's budget, DDPG, HER and RDHER: the paper's Table 3 time of one run "
+        f"over ours, the {'smallest' if _f is min else 'largest'}", functools.partial(
+            lambda f: f(_paper_s(r) / per_run_s(r) for r in REACH_TABLE3), _f))
+
+
 def _floor(task: str) -> dict:
     rows = json.loads((RESULTS / "floor.json").read_text(encoding="utf-8"))["rows"]
     return next(r for r in rows if r["task"] == task)
