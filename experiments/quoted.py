@@ -32,6 +32,7 @@ DHER-combined rows in a batch, the CSVs' ``frac_dher``, mean of the last 3 epoch
   ``S:M:ge50`` the number of seeds at 50 or above.
 - ``S-T:M`` the mean of S minus the mean of T (Welch), ``S-T:M:p`` Welch's two-sided p;
   ``S-T:M:paired`` and ``S-T:M:paired:p`` the same paired by seed (:func:`report.paired`);
+  ``S-T:M:paired:lo`` / ``:hi`` the 95% t interval of the mean per-seed difference;
   ``S-T:M:wins`` the seeds on which S is above T, ``S-T:M:common`` the seeds both hold. T is
   a setting, or a setting name alone for one of S's task (``bp/slide/rdher-her``).
 - A setting may be a glob over setting names (``ap/pnp/rdher_*``); then ``:min`` or ``:max``
@@ -161,13 +162,17 @@ def _versus(a: str, b: str, measure: str, test: list[str]) -> float:
         diff, p = report.welch(list(xs.values()), list(ys.values()))
     elif test in (["paired"], ["paired", "p"]):
         diff, p, _ = report.paired(xs, ys)
+    elif test in (["paired", "lo"], ["paired", "hi"]):
+        common = sorted(set(xs) & set(ys))
+        st = report.stat([report._rate(xs[k]) - report._rate(ys[k]) for k in common])
+        return scale * (st.lo if test[1] == "lo" else st.hi)
     elif test in (["wins"], ["common"]):
         common = sorted(set(xs) & set(ys))
         return float(len(common) if test == ["common"] else
                      sum(report._rate(xs[k]) > report._rate(ys[k]) for k in common))
     else:
-        raise KeyError(f"no test {':'.join(test)!r} (nothing, p, paired, paired:p, wins, "
-                       "common)")
+        raise KeyError(f"no test {':'.join(test)!r} (nothing, p, paired, paired:p, "
+                       "paired:lo, paired:hi, wins, common)")
     return p if test[-1:] == ["p"] else scale * diff
 
 
@@ -431,6 +436,21 @@ for _f in (min, max):
             lambda f: f(_paper_s(r) / per_run_s(r) for r in REACH_TABLE3), _f))
 
 
+SLIDE_PNP_DHER = ["bp/slide/dher", "bp/slide/rdher", "bp/pnp/dher", "bp/pnp/rdher"]
+HARD = [f"bp/{t}/{a}" for t in ("push", "slide", "pnp")
+        for a in ("ddpg", "her", "cher", "dher", "rdher")]
+for _f in (min, max):
+    add(f"bp/slide+pnp/dher+rdher:combined_run:{_f.__name__}", "benchmark/paper", "Slide and "
+        "PickAndPlace at the paper's budget, DHER and RDHER: the "
+        f"{'lowest' if _f is min else 'highest'} share of combined rows of a seed, mean over "
+        "all its epochs, %", functools.partial(
+            lambda f: f(_over(SLIDE_PNP_DHER, "combined_run")), _f))
+    add(f"bp/push+slide+pnp/*:wall_min:{_f.__name__}", "benchmark/paper", "Push, Slide and "
+        "PickAndPlace at the paper's budget, every algorithm: the "
+        f"{'fewest' if _f is min else 'most'} minutes per run (run_info.json)",
+        functools.partial(lambda f: f(per_run_s(r) for r in HARD) / 60, _f))
+
+
 def _floor(task: str) -> dict:
     rows = json.loads((RESULTS / "floor.json").read_text(encoding="utf-8"))["rows"]
     return next(r for r in rows if r["task"] == task)
@@ -441,6 +461,10 @@ for _abbr, _task in TASKS.items():
         add(f"floor/{_abbr}:zero", "floor.md", f"{_task}: success of a policy that does nothing "
             "on 1,000 episodes, %", functools.partial(
                 lambda t: 100 * _floor(t)["zero_action_success"], _task))
+        for _i, _end in enumerate(("lo", "hi")):
+            add(f"floor/{_abbr}:zero:{_end}", "floor.md", f"{_task}: the 95% interval of that "
+                f"success, its {'lower' if _end == 'lo' else 'upper'} end, %", functools.partial(
+                    lambda t, i: 100 * _floor(t)["ci95"][i], _task, _i))
         for _n in (10, 20):
             add(f"floor/{_abbr}:best{_n}", "floor.md", f"{_task}: the expected best of 50 "
                 f"epochs of {_n} test episodes of a policy that does nothing, %",
