@@ -35,6 +35,8 @@ DHER-combined rows in a batch, the CSVs' ``frac_dher``, mean of the last 3 epoch
   ``S-T:M:paired:lo`` / ``:hi`` the 95% t interval of the mean per-seed difference;
   ``S-T:M:wins`` the seeds on which S is above T, ``S-T:M:common`` the seeds both hold. T is
   a setting, or a setting name alone for one of S's task (``bp/slide/rdher-her``).
+- ``S:wall`` the wall clock per run of S (``run_info.json``, ``wall_clock_per_run_s``) as
+  ``33 min 16 s``; ``S:wall_min`` the same in minutes.
 - A setting may be a glob over setting names (``ap/pnp/rdher_*``); then ``:min`` or ``:max``
   at the end takes the lowest or highest of the settings' figures
   (``ap/pnp/rdher_*:policy:min``).
@@ -190,12 +192,15 @@ def _expand(ref: str) -> list[str]:
     return [f"{head}/{n}" for n in names]
 
 
-def systematic(name: str) -> float:
+def systematic(name: str) -> float | str:
     """The value of a name of the grammar in the module's docstring."""
     parts = name.split(":")
     if len(parts) < 2:
         raise KeyError(f"unknown figure {name!r}")
     ref, measure, rest = parts[0], parts[1], parts[2:]
+    if measure in ("wall", "wall_min") and not rest and "-" not in ref:
+        seconds = per_run_s(ref)
+        return minutes_seconds(seconds) if measure == "wall" else seconds / 60
     over = None
     if any(c in ref for c in "*?[") and rest[-1:] in (["min"], ["max"]):
         over, rest = rest[-1], rest[:-1]
@@ -342,14 +347,6 @@ add("pushm3:combined:max", PUSHM3, "the same run: highest share of combined rows
     lambda: 100 * max(float(r["frac_dher"]) for r in _pushm3()))
 add("pushm3:wall", PUSHM3, "the same run: its wall clock (wall_time of the last epoch)",
     lambda: minutes_seconds(float(_pushm3()[-1]["wall_time"])))
-
-for _ref in ("bp/push/her", "bp/push/ddpg", "bp/push/dher", "bp/push/rdher", "bp/push/cher",
-             *TABLE2, "bp/reach/ddpg", "bp/reach/her", "bp/reach/rdher", "bp/reach/cher",
-             "bp/reach/dher", "bc/push/her", "bc/push/rdher", "yp/push/dher_plain",
-             "yp/push/rdher_plain"):
-    add(f"{_ref}:wall", KINDS[_ref[:2]] + "/" + TASKS[_ref.split("/")[1]] + "/"
-        + _ref.split("/")[2], f"{_ref}: wall clock per run (run_info.json)",
-        functools.partial(lambda r: minutes_seconds(per_run_s(r)), _ref))
 
 add("bp/push/*:wall_min:min", "benchmark/paper/FetchPush", "Push at the paper's budget: the "
     "fewest minutes per run of any algorithm (run_info.json, wall_clock_per_run_s)",
