@@ -36,7 +36,8 @@ DHER-combined rows in a batch, the CSVs' ``frac_dher``, mean of the last 3 epoch
   ``S-T:M:wins`` the seeds on which S is above T, ``S-T:M:common`` the seeds both hold. T is
   a setting, or a setting name alone for one of S's task (``bp/slide/rdher-her``).
 - ``S:wall`` the wall clock per run of S (``run_info.json``, ``wall_clock_per_run_s``) as
-  ``33 min 16 s``; ``S:wall_min`` the same in minutes.
+  ``33 min 16 s``; ``S:wall_min`` the same in minutes; ``S:piece_min:min`` / ``:max`` the
+  fewest / most minutes per run of a one-seed piece of a setting run in pieces.
 - A setting may be a glob over setting names (``ap/pnp/rdher_*``); then ``:min`` or ``:max``
   at the end takes the lowest or highest of the settings' figures
   (``ap/pnp/rdher_*:policy:min``).
@@ -49,6 +50,7 @@ rounded rates), so a figure the prose takes from a summary.md table checks again
 from __future__ import annotations
 
 import argparse
+import builtins
 import fnmatch
 import functools
 import json
@@ -178,6 +180,14 @@ def _versus(a: str, b: str, measure: str, test: list[str]) -> float:
     return p if test[-1:] == ["p"] else scale * diff
 
 
+def _pieces(ref: str) -> list[float]:
+    """Minutes per run of each one-seed piece of a setting that ran in pieces."""
+    pieces = run_info(ref).get("pieces")
+    if not pieces:
+        raise KeyError(f"{ref} did not run in pieces (no 'pieces' in its run_info.json)")
+    return [float(p["wall_clock_s"]) / int(p["runs"]) / 60 for p in pieces]
+
+
 def _expand(ref: str) -> list[str]:
     """A setting reference, or every setting a glob over the last part names."""
     if not any(c in ref for c in "*?["):
@@ -201,6 +211,13 @@ def systematic(name: str) -> float | str:
     if measure in ("wall", "wall_min") and not rest and "-" not in ref:
         seconds = per_run_s(ref)
         return minutes_seconds(seconds) if measure == "wall" else seconds / 60
+    if measure == "piece_min" and "-" not in ref:
+        over = rest[1] if len(rest) == 2 else None
+        if not rest or rest[0] not in ("min", "max") or over not in (None, "min", "max"):
+            raise KeyError(f"{name!r}: piece_min takes :min or :max (then :min or :max over a "
+                           "glob)")
+        vals = [getattr(builtins, rest[0])(_pieces(x)) for x in _expand(ref)]
+        return getattr(builtins, over)(vals) if over else vals[0]
     over = None
     if any(c in ref for c in "*?[") and rest[-1:] in (["min"], ["max"]):
         over, rest = rest[-1], rest[:-1]
@@ -446,6 +463,35 @@ for _f in (min, max):
         "PickAndPlace at the paper's budget, every algorithm: the "
         f"{'fewest' if _f is min else 'most'} minutes per run (run_info.json)",
         functools.partial(lambda f: f(per_run_s(r) for r in HARD) / 60, _f))
+
+
+def _her_ahead_s012() -> list[tuple[float, float, int]]:
+    """Push ablation: HER against each pair, paired over seeds 0-2 (the pairs' seeds)."""
+    her = {k: v for k, v in seeds("ap/push/her", "final").items() if k < 3}
+    return [report.paired({k: v / 100 for k, v in her.items()},
+                          {k: v / 100 for k, v in seeds(r, "final").items() if k < 3})
+            for r in _expand("ap/push/rdher_*")]
+
+
+add("ap/push/her-rdher_*:final:paired:s0-2:min", "ablation/paper/FetchPush", "Push ablation: "
+    "HER's final minus each pair's, paired over seeds 0-2, the smallest",
+    lambda: 100 * min(d for d, _, _ in _her_ahead_s012()))
+add("ap/push/her-rdher_*:final:paired:s0-2:max", "ablation/paper/FetchPush", "the same, the "
+    "largest", lambda: 100 * max(d for d, _, _ in _her_ahead_s012()))
+add("ap/push/her-rdher_*:final:paired:p:s0-2:min", "ablation/paper/FetchPush", "the same: the "
+    "smallest paired p", lambda: min(p for _, p, _ in _her_ahead_s012()))
+
+
+def _ablation_pieces() -> list[float]:
+    """Minutes per run of every one-seed piece of the Push and PickAndPlace ablations."""
+    return [m for t in ("push", "pnp") for r in _expand(f"ap/{t}/rdher_*")
+            if run_info(r).get("pieces") for m in _pieces(r)]
+
+
+for _f in (min, max):
+    add(f"ap/push+pnp/*:piece_min:{_f.__name__}", "ablation/paper", "Push and PickAndPlace "
+        f"ablations: the {'fewest' if _f is min else 'most'} minutes per run of a one-seed piece",
+        functools.partial(lambda f: f(_ablation_pieces()), _f))
 
 
 def _floor(task: str) -> dict:
