@@ -36,8 +36,9 @@ DHER-combined rows in a batch, the CSVs' ``frac_dher``, mean of the last 3 epoch
   ``S-T:M:wins`` the seeds on which S is above T, ``S-T:M:common`` the seeds both hold. T is
   a setting, or a setting name alone for one of S's task (``bp/slide/rdher-her``).
 - ``S:wall`` the wall clock per run of S (``run_info.json``, ``wall_clock_per_run_s``) as
-  ``33 min 16 s``; ``S:wall_min`` the same in minutes; ``S:piece_min:min`` / ``:max`` the
-  fewest / most minutes per run of a one-seed piece of a setting run in pieces.
+  ``33 min 16 s``; ``S:wall_min`` the same in minutes (over a glob, ``:min`` or ``:max``);
+  ``S:piece_min:min`` / ``:max`` the fewest / most minutes per run of a one-seed piece of a
+  setting run in pieces.
 - A setting may be a glob over setting names (``ap/pnp/rdher_*``); then ``:min`` or ``:max``
   at the end takes the lowest or highest of the settings' figures
   (``ap/pnp/rdher_*:policy:min``).
@@ -208,9 +209,13 @@ def systematic(name: str) -> float | str:
     if len(parts) < 2:
         raise KeyError(f"unknown figure {name!r}")
     ref, measure, rest = parts[0], parts[1], parts[2:]
-    if measure in ("wall", "wall_min") and not rest and "-" not in ref:
-        seconds = per_run_s(ref)
-        return minutes_seconds(seconds) if measure == "wall" else seconds / 60
+    if measure == "wall" and not rest and "-" not in ref:
+        return minutes_seconds(per_run_s(ref))
+    if measure == "wall_min" and "-" not in ref:
+        vals = [per_run_s(x) / 60 for x in _expand(ref)]
+        if len(vals) > 1 and rest not in (["min"], ["max"]) or len(vals) == 1 and rest:
+            raise KeyError(f"{name!r}: wall_min takes :min or :max after a glob, else nothing")
+        return getattr(builtins, rest[0])(vals) if rest else vals[0]
     if measure == "piece_min" and "-" not in ref:
         over = rest[1] if len(rest) == 2 else None
         if not rest or rest[0] not in ("min", "max") or over not in (None, "min", "max"):
