@@ -36,7 +36,9 @@ DHER-combined rows in a batch, the CSVs' ``frac_dher``, mean of the last 3 epoch
   ``S-T:M:wins`` the seeds on which S is above T, ``S-T:M:common`` the seeds both hold. T is
   a setting, or a setting name alone for one of S's task (``bp/slide/rdher-her``).
 - ``S:wall`` the wall clock per run of S (``run_info.json``, ``wall_clock_per_run_s``) as
-  ``33 min 16 s``; ``S:wall_min`` the same in minutes (over a glob, ``:min`` or ``:max``);
+  ``33 min 16 s``, ``S:wall_mmss`` as ``33:16``; ``S:wall_min`` the same in minutes (over a
+  glob, ``:min`` or ``:max``); ``S-T:wall_ratio`` S's wall clock per run over T's;
+  ``S:table3_ratio`` the paper's Table 3 time of one run over S's;
   ``S:piece_min:min`` / ``:max`` the fewest / most minutes per run of a one-seed piece of a
   setting run in pieces.
 - A setting may be a glob over setting names (``ap/pnp/rdher_*``); then ``:min`` or ``:max``
@@ -211,6 +213,14 @@ def systematic(name: str) -> float | str:
     ref, measure, rest = parts[0], parts[1], parts[2:]
     if measure == "wall" and not rest and "-" not in ref:
         return minutes_seconds(per_run_s(ref))
+    if measure == "wall_mmss" and not rest and "-" not in ref:
+        sec = int(round(per_run_s(ref)))
+        return f"{sec // 60}:{sec % 60:02d}"
+    if measure == "wall_ratio" and rest == [] and "-" in ref:
+        a, b = ref.split("-", 1)
+        return per_run_s(a) / per_run_s(b if "/" in b else a.rsplit("/", 1)[0] + "/" + b)
+    if measure == "table3_ratio" and not rest and "-" not in ref:
+        return _paper_s(ref) / per_run_s(ref)
     if measure == "wall_min" and "-" not in ref:
         vals = [per_run_s(x) / 60 for x in _expand(ref)]
         if len(vals) > 1 and rest not in (["min"], ["max"]) or len(vals) == 1 and rest:
@@ -497,6 +507,23 @@ for _f in (min, max):
     add(f"ap/push+pnp/*:piece_min:{_f.__name__}", "ablation/paper", "Push and PickAndPlace "
         f"ablations: the {'fewest' if _f is min else 'most'} minutes per run of a one-seed piece",
         functools.partial(lambda f: f(_ablation_pieces()), _f))
+
+
+def _cost(experiment: str | None, task: str | None, col: int) -> float:
+    rows = report.cost_rows(report.profiles_data(RESULTS))
+    return sum(r[col] for r in rows if experiment in (None, r[0]) and task in (None, r[1]))
+
+
+for _exp, _task, _key in ((None, None, "total"), ("benchmark/paper", None, "benchmark/paper"),
+                          ("beyond/paper", "FetchPush", "beyond/paper/FetchPush")):
+    add(f"cost:{_key}:hours", "cost.md", f"cost.md: core-hours of {_key}",
+        functools.partial(_cost, _exp, _task, 4))
+    add(f"cost:{_key}:runs", "cost.md", f"cost.md: runs of {_key}",
+        functools.partial(_cost, _exp, _task, 3))
+add("bl/push-fast:to_0.9:max", "bench_learning/push-fast.json", "preset=fast on Push, "
+    "bench_learning's first three seeds: the most env steps to 0.9 (mean of 3)",
+    lambda: max(r["hits"]["0.9"]["window"]["env_steps"]
+                for r in _bl("push-fast")["results"].values()))
 
 
 def _floor(task: str) -> dict:
