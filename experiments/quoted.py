@@ -245,7 +245,10 @@ def systematic(name: str) -> float | str:
         stat = rest[0] if rest else "mean"
         if len(rest) > 1:
             raise KeyError(f"unknown figure {name!r}")
-        vals = [_over_seeds(x, measure, stat) for x in _expand(ref)]
+        refs = _expand(ref)
+        if len(refs) > 1:  # a glob: the settings that have the measure (HER has no DHER rows)
+            refs = [x for x in refs if seeds(x, measure)] or refs
+        vals = [_over_seeds(x, measure, stat) for x in refs]
     vals = [v for v in vals if not math.isnan(v)] or vals  # a test without variance has no p
     if len(vals) > 1 and over is None:
         raise KeyError(f"{name!r}: a glob needs :min or :max at the end")
