@@ -35,6 +35,8 @@ DHER-combined rows in a batch, the CSVs' ``frac_dher``, mean of the last 3 epoch
   ``S-T:M:paired:lo`` / ``:hi`` the 95% t interval of the mean per-seed difference;
   ``S-T:M:wins`` the seeds on which S is above T, ``S-T:M:common`` the seeds both hold. T is
   a setting, or a setting name alone for one of S's task (``bp/slide/rdher-her``).
+- ``S:w1``, ``S:w2``, ``S:w3`` (``:sd``) the mean test success over summary.md's env-step
+  windows (report.windows: the first 40%, the next 40%, the last 20% of the steps), %.
 - ``S:wall`` the wall clock per run of S (``run_info.json``, ``wall_clock_per_run_s``) as
   ``33 min 16 s``, ``S:wall_mmss`` as ``33:16``; ``S:wall_min`` the same in minutes (over a
   glob, ``:min`` or ``:max``); ``S-T:wall_ratio`` S's wall clock per run over T's;
@@ -211,6 +213,12 @@ def systematic(name: str) -> float | str:
     if len(parts) < 2:
         raise KeyError(f"unknown figure {name!r}")
     ref, measure, rest = parts[0], parts[1], parts[2:]
+    if re.fullmatch(r"w\d", measure) and "-" not in ref and rest in ([], ["sd"]):
+        k = int(measure[1:]) - 1
+        if not 0 <= k < len(report.WINDOWS):
+            raise KeyError(f"{name!r}: windows are w1-w{len(report.WINDOWS)}")
+        st = report.windows(setting(ref))[k][1]
+        return 100 * (st.std if rest else st.mean)
     if measure == "wall" and not rest and "-" not in ref:
         return minutes_seconds(per_run_s(ref))
     if measure == "wall_mmss" and not rest and "-" not in ref:
@@ -436,6 +444,41 @@ for _seed in range(3):
         functools.partial(lambda k: same_epochs(PUSH_PAIRS, k), _seed))
 
 
+def _over(refs: list[str], measure: str, keep: Callable[[int], bool] = lambda k: True
+          ) -> list[float]:
+    """``measure`` of every seed ``keep`` takes of every setting of ``refs``."""
+    return [v for r in refs for k, v in seeds(r, measure).items() if keep(k)]
+
+
+PUSH_LEARNERS = ["bp/push/ddpg", "bp/push/dher", "bp/push/her", "bp/push/rdher"]
+for _m in ("best", "policy"):
+    for _f in (min, max):
+        add(f"bp/push/ddpg+dher+her+rdher:{_m}:s0+s1:{_f.__name__}", "benchmark/paper/FetchPush",
+            f"Push at the paper's budget, seeds 0 and 1 of DDPG, DHER, HER and RDHER: the "
+            f"{'lowest' if _f is min else 'highest'} {_m}", functools.partial(
+                lambda m, f: f(_over(PUSH_LEARNERS, m, lambda k: k in (0, 1))), _m, _f))
+PUSH_MIXES = ["bp/push/dher", "bp/push/rdher", "yp/push/dher_plain", "yp/push/rdher_plain"]
+for _seed in range(5):
+    for _f in (min, max):
+        add(f"bp+yp/push/dher+rdher+plain:final:s{_seed}:{_f.__name__}", "beyond/paper/FetchPush",
+            f"Push at the paper's budget, DHER and RDHER with either mix, seed {_seed}: the "
+            f"{'lowest' if _f is min else 'highest'} final",
+            functools.partial(lambda k, f: f(_over(PUSH_MIXES, "final", lambda j: j == k)),
+                              _seed, _f))
+SLIDE_PNP_HER_RDHER = ["bp/slide/her", "bp/pnp/her", "bp/slide/rdher", "bp/pnp/rdher"]
+for _f in (min, max):
+    add(f"bp/slide+pnp/her+rdher:best-policy:{_f.__name__}", "benchmark/paper", "Slide and "
+        "PickAndPlace at the paper's budget, HER and RDHER: the "
+        f"{'smallest' if _f is min else 'largest'} gap of best epoch over best policy retested",
+        functools.partial(lambda f: f(value(f"{r}:best") - value(f"{r}:policy")
+                                      for r in SLIDE_PNP_HER_RDHER), _f))
+PUSH_PAIRS = [p.replace("/pnp/", "/push/") for p in PNP_PAIRS]
+for _seed in range(3):
+    add(f"ap/push/*:same_epochs:s{_seed}", "ablation/paper/FetchPush", f"Push ablation: epochs "
+        f"of seed {_seed} on which all six pairs' test success is the same",
+        functools.partial(lambda k: same_epochs(PUSH_PAIRS, k), _seed))
+
+
 def _window(ref: str, k: int, stat: str) -> float:
     st = report.windows(setting(ref))[k][1]
     return 100 * (st.mean if stat == "mean" else st.std)
@@ -527,6 +570,15 @@ add("bl/push-fast:to_0.9:max", "bench_learning/push-fast.json", "preset=fast on 
     "bench_learning's first three seeds: the most env steps to 0.9 (mean of 3)",
     lambda: max(r["hits"]["0.9"]["window"]["env_steps"]
                 for r in _bl("push-fast")["results"].values()))
+
+
+SLIDE_COMBINED = ["yp/slide/rdher", "yp/slide/rdher_clip", "bp/slide/dher"]
+for _f in (min, max):
+    add(f"yp/slide/rdher+rdher_clip+dher:combined_run:{_f.__name__}", "beyond/paper/FetchSlide",
+        "Slide at the paper's budget, RDHER with either clip and DHER at the authors' share: "
+        f"the {'lowest' if _f is min else 'highest'} share of combined rows of a seed, mean over "
+        "all its epochs, %", functools.partial(
+            lambda f: f(_over(SLIDE_COMBINED, "combined_run")), _f))
 
 
 def _floor(task: str) -> dict:
