@@ -1,0 +1,776 @@
+"""Figures the hand-written prose quotes, each recomputed from the committed data.
+
+    python experiments/quoted.py --check    # each checked figure against the data; exit 1 on a miss
+    python experiments/quoted.py --write    # rewrite every checked figure from the data
+    python experiments/quoted.py --list     # the named figures of the table below
+
+In ``experiments/results/RESULTS.md``, ``README.md`` and every ``experiments/results/**/README.md``
+a checked figure is a markdown link whose title starts with ``q:`` and names the figure; the
+link goes to the committed data it comes from (relative to the markdown file, as any link):
+
+    [91.7](../benchmark/cpu/FetchPush/her "q:bc/push/her:final")
+
+A figure not written so is hand-typed, and nothing checks it. The text of a numeric figure is
+compared at its own precision (``92`` quotes 91.67 correctly, ``91.6`` does not; a p of
+``0.032`` is 0.0317 to three decimals; ``1.5e-07`` to two significant digits); a text figure
+(a wall clock such as ``33 min 16 s``) must match exactly, and the link must lead to the data the
+figure comes from (:func:`source`). ``tests/test_quoted.py`` runs the check.
+
+Names. A *setting* is ``<kind>/<task>/<setting>`` with the kind and profile abbreviated
+(:data:`KINDS`: ``bp`` = ``benchmark/paper``, ...) and the task too (:data:`TASKS`: ``push`` =
+``FetchPush``, ...), e.g. ``bp/slide/rdher`` is ``experiments/results/benchmark/paper/FetchSlide/
+rdher``. A *measure* is one of report.py's per-seed figures (:func:`report.per_seed`): ``best``
+(max over epochs of test success), ``final`` (mean of the last 3 epochs), ``mean`` (mean over
+all epochs), ``policy`` (the best policy retested); all in %. Also ``combined`` (the share of
+DHER-combined rows in a batch, the CSVs' ``frac_dher``, mean of the last 3 epochs, %),
+``combined_run`` (the same over every epoch) and the bias columns (``bias_real``,
+``bias_unw_her``, ...: mean of the last 3 epochs, as summary.md's diagnostic).
+
+- ``S:M`` the mean over seeds of measure M of setting S; ``S:M:sd`` its sample std, ``S:M:lo``
+  / ``S:M:hi`` its 95% t interval clipped to [0, 100] (as summary.md prints it), ``S:M:n`` the
+  seeds, ``S:M:s2`` seed 2's value, ``S:M:min`` / ``S:M:max`` the lowest / highest seed's,
+  ``S:M:ge50`` the number of seeds at 50 or above.
+- ``S-T:M`` the mean of S minus the mean of T (Welch), ``S-T:M:p`` Welch's two-sided p;
+  ``S-T:M:paired`` and ``S-T:M:paired:p`` the same paired by seed (:func:`report.paired`);
+  ``S-T:M:paired:lo`` / ``:hi`` the 95% t interval of the mean per-seed difference;
+  ``S-T:M:wins`` the seeds on which S is above T, ``S-T:M:common`` the seeds both hold. T is
+  a setting, or a setting name alone for one of S's task (``bp/slide/rdher-her``).
+- ``S:w1``, ``S:w2``, ``S:w3`` (``:sd``) the mean test success over summary.md's env-step
+  windows (report.windows: the first 40%, the next 40%, the last 20% of the steps), %.
+- ``S:wall`` the wall clock per run of S (``run_info.json``, ``wall_clock_per_run_s``) as
+  ``33 min 16 s``, ``S:wall_mmss`` as ``33:16``; ``S:wall_min`` the same in minutes (over a
+  glob, ``:min`` or ``:max``); ``S-T:wall_ratio`` S's wall clock per run over T's;
+  ``S:table3_ratio`` the paper's Table 3 time of one run over S's;
+  ``S:piece_min:min`` / ``:max`` the fewest / most minutes per run of a one-seed piece of a
+  setting run in pieces.
+- A setting may be a glob over setting names (``ap/pnp/rdher_*``); then ``:min`` or ``:max``
+  at the end takes the lowest or highest of the settings' figures
+  (``ap/pnp/rdher_*:policy:min``).
+- Any other name is an entry of :data:`NAMED` below.
+
+Numbers are as report.py's tables print them (100 · rate, Welch and paired tests on the
+rounded rates), so a figure the prose takes from a summary.md table checks against the table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import builtins
+import fnmatch
+import functools
+import json
+import math
+import re
+import statistics
+import sys
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+
+import report  # noqa: E402
+
+ROOT = HERE.parent
+RESULTS = HERE / "results"
+KINDS = {"ac": "ablation/cpu", "ap": "ablation/paper", "bc": "benchmark/cpu",
+         "bp": "benchmark/paper", "yc": "beyond/cpu", "yp": "beyond/paper", "mc": "moving/cpu"}
+TASKS = {"reach": "FetchReach", "push": "FetchPush", "slide": "FetchSlide",
+         "pnp": "FetchPickAndPlace", "pushm": "FetchPushMoving", "reachm": "FetchReachMoving"}
+MEASURES = ("best", "final", "mean", "policy")
+
+
+def markdown_files(root: Path = ROOT) -> list[Path]:
+    """The files whose prose may quote checked figures."""
+    res = root / "experiments" / "results"
+    return [root / "README.md", res / "RESULTS.md", *sorted(res.glob("**/README.md"))]
+
+
+# ------------------------------------------------------------------ the data
+
+@functools.cache
+def setting_dir(ref: str) -> Path:
+    """``bp/push/her`` -> ``experiments/results/benchmark/paper/FetchPush/her``."""
+    parts = ref.split("/")
+    if len(parts) != 3 or parts[0] not in KINDS or parts[1] not in TASKS:
+        raise KeyError(f"not a setting: {ref!r} (<{'|'.join(KINDS)}>/<{'|'.join(TASKS)}>/<name>)")
+    path = RESULTS / KINDS[parts[0]] / TASKS[parts[1]] / parts[2]
+    if not (path / "run_info.json").is_file():
+        raise KeyError(f"no setting {ref!r}: {path.relative_to(ROOT)} has no run_info.json")
+    return path
+
+
+@functools.cache
+def setting(ref: str) -> report.SettingData:
+    return report.read_setting(setting_dir(ref))
+
+
+def run_info(ref: str) -> dict:
+    return setting(ref).meta
+
+
+COLUMN_MEASURES = ("combined", "combined_run", *report.BIAS_COLS)
+
+
+def seeds(ref: str, measure: str) -> dict[int, float]:
+    """Per seed, ``measure`` of setting ``ref``, in the units the prose quotes it in: report.py's
+    rates in % (``best``, ``final``, ``mean``, ``policy``); ``combined``, the share of DHER-
+    combined rows in a batch (``frac_dher``), mean of the last 3 epochs, in %, and
+    ``combined_run`` the same over every epoch; a bias column (``bias_real``, ...), mean of its
+    finite values over the last 3 epochs, as summary.md's diagnostic."""
+    if measure in MEASURES:
+        return {k: 100 * v for k, v in report.per_seed(setting(ref))[measure].items()}
+    if measure not in COLUMN_MEASURES:
+        raise KeyError(f"no measure {measure!r} (one of {', '.join(MEASURES + COLUMN_MEASURES)})")
+    col = "frac_dher" if measure.startswith("combined") else measure
+    scale = 100 if col == "frac_dher" else 1
+    last = None if measure == "combined_run" else report.LAST
+    out = {}
+    for k, v in setting(ref).column(col).items():
+        xs = [x for x in (v if last is None else v[-last:]) if math.isfinite(x)]
+        if xs:
+            out[k] = scale * statistics.fmean(xs)
+    return out
+
+
+def _over_seeds(ref: str, measure: str, stat: str) -> float:
+    xs = seeds(ref, measure)
+    if not xs:
+        raise KeyError(f"{ref} has no {measure!r} figures")
+    st = report.stat(list(xs.values()))
+    if stat == "mean":
+        return st.mean
+    if stat == "sd":
+        return st.std
+    if stat == "lo":
+        return max(st.lo, 0.0)
+    if stat == "hi":
+        return min(st.hi, 100.0)
+    if stat == "n":
+        return len(xs)
+    if stat == "min":
+        return min(xs.values())
+    if stat == "max":
+        return max(xs.values())
+    if re.fullmatch(r"ge\d+", stat):
+        return sum(x >= int(stat[2:]) - 1e-4 for x in xs.values())
+    if re.fullmatch(r"s\d+", stat):
+        if int(stat[1:]) not in xs:
+            raise KeyError(f"{ref} has no seed {stat[1:]}")
+        return xs[int(stat[1:])]
+    raise KeyError(f"no statistic {stat!r} (mean, sd, lo, hi, n, min, max, s<seed>, ge<x>)")
+
+
+def _versus(a: str, b: str, measure: str, test: list[str]) -> float:
+    """As report.py tests two settings: on the rates (rounded as report.welch rounds them)."""
+    scale = 1 if measure in report.BIAS_COLS else 100
+    xs = {k: v / scale for k, v in seeds(a, measure).items()}
+    ys = {k: v / scale for k, v in seeds(b, measure).items()}
+    if test in ([], ["p"]):
+        diff, p = report.welch(list(xs.values()), list(ys.values()))
+    elif test in (["paired"], ["paired", "p"]):
+        diff, p, _ = report.paired(xs, ys)
+    elif test in (["paired", "lo"], ["paired", "hi"]):
+        common = sorted(set(xs) & set(ys))
+        st = report.stat([report._rate(xs[k]) - report._rate(ys[k]) for k in common])
+        return scale * (st.lo if test[1] == "lo" else st.hi)
+    elif test in (["wins"], ["common"]):
+        common = sorted(set(xs) & set(ys))
+        return float(len(common) if test == ["common"] else
+                     sum(report._rate(xs[k]) > report._rate(ys[k]) for k in common))
+    else:
+        raise KeyError(f"no test {':'.join(test)!r} (nothing, p, paired, paired:p, "
+                       "paired:lo, paired:hi, wins, common)")
+    return p if test[-1:] == ["p"] else scale * diff
+
+
+def _pieces(ref: str) -> list[float]:
+    """Minutes per run of each one-seed piece of a setting that ran in pieces."""
+    pieces = run_info(ref).get("pieces")
+    if not pieces:
+        raise KeyError(f"{ref} did not run in pieces (no 'pieces' in its run_info.json)")
+    return [float(p["wall_clock_s"]) / int(p["runs"]) / 60 for p in pieces]
+
+
+def _expand(ref: str) -> list[str]:
+    """A setting reference, or every setting a glob over the last part names."""
+    if not any(c in ref for c in "*?["):
+        return [ref]
+    head, pat = ref.rsplit("/", 1)
+    kind, task = head.split("/")
+    base = RESULTS / KINDS[kind] / TASKS[task]
+    names = sorted(p.name for p in base.iterdir()
+                   if (p / "run_info.json").is_file() and fnmatch.fnmatchcase(p.name, pat))
+    if not names:
+        raise KeyError(f"no setting matches {ref!r}")
+    return [f"{head}/{n}" for n in names]
+
+
+def systematic(name: str) -> float | str:
+    """The value of a name of the grammar in the module's docstring."""
+    parts = name.split(":")
+    if len(parts) < 2:
+        raise KeyError(f"unknown figure {name!r}")
+    ref, measure, rest = parts[0], parts[1], parts[2:]
+    if re.fullmatch(r"w\d", measure) and "-" not in ref and rest in ([], ["sd"]):
+        k = int(measure[1:]) - 1
+        if not 0 <= k < len(report.WINDOWS):
+            raise KeyError(f"{name!r}: windows are w1-w{len(report.WINDOWS)}")
+        st = report.windows(setting(ref))[k][1]
+        return 100 * (st.std if rest else st.mean)
+    if measure == "wall" and not rest and "-" not in ref:
+        return minutes_seconds(per_run_s(ref))
+    if measure == "wall_mmss" and not rest and "-" not in ref:
+        sec = int(round(per_run_s(ref)))
+        return f"{sec // 60}:{sec % 60:02d}"
+    if measure == "wall_ratio" and rest == [] and "-" in ref:
+        a, b = ref.split("-", 1)
+        return per_run_s(a) / per_run_s(b if "/" in b else a.rsplit("/", 1)[0] + "/" + b)
+    if measure == "table3_ratio" and not rest and "-" not in ref:
+        return _paper_s(ref) / per_run_s(ref)
+    if measure == "wall_min" and "-" not in ref:
+        vals = [per_run_s(x) / 60 for x in _expand(ref)]
+        if len(vals) > 1 and rest not in (["min"], ["max"]) or len(vals) == 1 and rest:
+            raise KeyError(f"{name!r}: wall_min takes :min or :max after a glob, else nothing")
+        return getattr(builtins, rest[0])(vals) if rest else vals[0]
+    if measure == "piece_min" and "-" not in ref:
+        over = rest[1] if len(rest) == 2 else None
+        if not rest or rest[0] not in ("min", "max") or over not in (None, "min", "max"):
+            raise KeyError(f"{name!r}: piece_min takes :min or :max (then :min or :max over a "
+                           "glob)")
+        vals = [getattr(builtins, rest[0])(_pieces(x)) for x in _expand(ref)]
+        return getattr(builtins, over)(vals) if over else vals[0]
+    over = None
+    if any(c in ref for c in "*?[") and rest[-1:] in (["min"], ["max"]):
+        over, rest = rest[-1], rest[:-1]
+    if "-" in ref:
+        a, b = ref.split("-", 1)
+        if "/" not in b:
+            b = a.rsplit("/", 1)[0] + "/" + b
+        vals = [_versus(x, y, measure, rest) for x in _expand(a) for y in _expand(b) if x != y]
+    else:
+        stat = rest[0] if rest else "mean"
+        if len(rest) > 1:
+            raise KeyError(f"unknown figure {name!r}")
+        refs = _expand(ref)
+        if len(refs) > 1:  # a glob: the settings that have the measure (HER has no DHER rows)
+            refs = [x for x in refs if seeds(x, measure)] or refs
+        vals = [_over_seeds(x, measure, stat) for x in refs]
+    vals = [v for v in vals if not math.isnan(v)] or vals  # a test without variance has no p
+    if len(vals) > 1 and over is None:
+        raise KeyError(f"{name!r}: a glob needs :min or :max at the end")
+    return min(vals) if over == "min" else max(vals) if over == "max" else vals[0]
+
+
+# ------------------------------------------------------------------ named figures
+
+def minutes_seconds(seconds: float) -> str:
+    """``2016.4`` -> ``'33 min 16 s'`` (rounded to the second; hours as minutes)."""
+    s = int(round(seconds))
+    return f"{s // 60} min {s % 60} s"
+
+
+def per_run_s(ref: str) -> float:
+    return float(run_info(ref)["wall_clock_per_run_s"])
+
+
+def read_rows(path: Path) -> list[dict[str, str]]:
+    """The rows with a test success of a metrics CSV."""
+    import csv
+
+    with open(path, newline="", encoding="utf-8") as f:
+        return [r for r in csv.DictReader(f) if r.get("test_success", "") != ""]
+
+
+def success(rows: list[dict[str, str]]) -> list[float]:
+    return [float(r["test_success"]) for r in rows]
+
+
+def same_epochs(refs: list[str], seed: int) -> int:
+    """Epochs of ``seed`` on which every setting of ``refs`` has the same test success."""
+    curves = [success(setting(r).runs[seed]) for r in refs]
+    return sum(len({round(c[i], 6) for c in curves}) == 1 for i in range(min(map(len, curves))))
+
+
+def window_mean(rows: list[dict[str, str]], lo: float, hi: float, col: str = "test_success"
+                ) -> float:
+    """Mean of ``col`` over the epochs whose env steps end in (lo, hi]."""
+    return statistics.fmean(float(r[col]) for r in rows if lo < float(r["env_steps"]) <= hi)
+
+
+def hit(rows: list[dict[str, str]], threshold: float) -> dict | None:
+    """bench_learning's first epoch whose trailing mean of 3 reaches ``threshold``."""
+    import bench_learning
+
+    return (bench_learning.first_hit(rows, threshold, 3) or {}).get("window")
+
+
+@dataclass(frozen=True)
+class Named:
+    fn: Callable[[], float | str]
+    doc: str
+    source: str  # under experiments/results
+
+
+NAMED: dict[str, Named] = {}
+
+
+def add(name: str, source: str, doc: str, fn: Callable[[], float | str]) -> None:
+    NAMED[name] = Named(fn, doc, source)
+
+
+CARD = "design_card/FetchSlide"
+PUSHM3 = "moving_goals/pushmoving_fast"
+PUSH_FLOOR = ["bp/push/ddpg", "bp/push/dher", "bp/push/rdher", "bp/push/cher"]
+PNP_PAIRS = [f"ap/pnp/{n}" for n in ("rdher_lr0.5_lh4", "rdher_lr1_lh2", "rdher_lr1_lh4",
+                                     "rdher_lr2_lh1", "rdher_lr4_lh0.5", "rdher_lr4_lh1")]
+TABLE2 = [f"bp/{t}/{a}" for t in ("slide", "pnp") for a in ("ddpg", "her", "cher", "dher",
+                                                             "rdher")]
+
+
+def _card() -> list[dict[str, str]]:
+    return read_rows(RESULTS / CARD / "metrics.csv")
+
+
+def _pushm3() -> list[dict[str, str]]:
+    return read_rows(RESULTS / PUSHM3 / "dher_frac0.2_s3.csv")
+
+
+def _bl(name: str) -> dict:
+    return json.loads((RESULTS / "bench_learning" / f"{name}.json").read_text(encoding="utf-8"))
+
+
+def _idle_pace() -> float:
+    """Env steps a minute of push-fast-idle's seed 0, to 0.9 (mean of 3)."""
+    w = _bl("push-fast-idle")["results"]["0"]["hits"]["0.9"]["window"]
+    return w["env_steps"] / (w["wall_s"] / 60)
+
+
+def _paced_minutes() -> list[float]:
+    """Seeds 1-4 of preset=fast on FetchPush (timed beside other work): their steps to 0.9
+    (mean of 3) at seed 0's idle pace, in minutes."""
+    steps = [r["hits"]["0.9"]["window"]["env_steps"]
+             for name in ("push-fast-overlap", "push-fast-overlap-more")
+             for k, r in _bl(name)["results"].items() if k != "0"]
+    return [n / _idle_pace() for n in steps]
+
+
+def _her_hits() -> list[dict | None]:
+    return [hit(rows, 0.9) for rows in setting("bc/push/her").runs.values()]
+
+
+add("card:best", CARD, "design card: best 10-episode test success (a rate)",
+    lambda: max(success(_card())))
+add("card:best_epoch", CARD, "design card: the epoch (as logged, from 1) of the best test "
+    "success", lambda: float(next(r["epoch"] for r in _card()
+                                  if float(r["test_success"]) == max(success(_card())))))
+add("card:last", CARD, "design card: the last epoch's test success (a rate)",
+    lambda: success(_card())[-1])
+add("card:final", CARD, "design card: mean of the last 3 epochs' test success (report.py's "
+    "final; a rate)", lambda: statistics.fmean(success(_card())[-report.LAST:]))
+add("card:last10", CARD, "design card: mean of the last 10 epochs' test success (a rate)",
+    lambda: statistics.fmean(success(_card())[-10:]))
+add("card:wall", CARD, "design card: the run's wall clock (wall_time of the last epoch)",
+    lambda: minutes_seconds(float(_card()[-1]["wall_time"])))
+
+for _lo, _hi, _key in ((0, 100_000, "w1"), (100_000, 200_000, "w2"), (200_000, 250_000, "w3")):
+    add(f"pushm3:{_key}", PUSHM3, f"FetchPushMoving, DHER at a 0.2 share, seed 3: mean test "
+        f"success over env steps ({_lo:,}, {_hi:,}] (a rate)",
+        functools.partial(lambda lo, hi: window_mean(_pushm3(), lo, hi), _lo, _hi))
+add("pushm3:best", PUSHM3, "the same run: best test success (a rate)",
+    lambda: max(success(_pushm3())))
+add("pushm3:last", PUSHM3, "the same run: the last epoch's test success (a rate)",
+    lambda: success(_pushm3())[-1])
+add("pushm3:final", PUSHM3, "the same run: mean of the last 3 epochs (a rate)",
+    lambda: statistics.fmean(success(_pushm3())[-report.LAST:]))
+add("pushm3:combined:min", PUSHM3, "the same run: lowest share of combined rows in a batch of "
+    "any epoch, %", lambda: 100 * min(float(r["frac_dher"]) for r in _pushm3()))
+add("pushm3:combined:max", PUSHM3, "the same run: highest share of combined rows, %",
+    lambda: 100 * max(float(r["frac_dher"]) for r in _pushm3()))
+add("pushm3:wall", PUSHM3, "the same run: its wall clock (wall_time of the last epoch)",
+    lambda: minutes_seconds(float(_pushm3()[-1]["wall_time"])))
+
+add("bp/push/*:wall_min:min", "benchmark/paper/FetchPush", "Push at the paper's budget: the "
+    "fewest minutes per run of any algorithm (run_info.json, wall_clock_per_run_s)",
+    lambda: min(per_run_s(r) for r in ["bp/push/her", *PUSH_FLOOR]) / 60)
+add("bp/push/*:wall_min:max", "benchmark/paper/FetchPush", "the same: the most",
+    lambda: max(per_run_s(r) for r in ["bp/push/her", *PUSH_FLOOR]) / 60)
+for _cpu, _key in (("AMD EPYC", "epyc"), ("Intel(R) Xeon(R) Processor", "xeon")):
+    for _f, _m in ((min, "min"), (max, "max")):
+        add(f"bp/slide+pnp/{_key}:wall_min:{_m}", "benchmark/paper", f"Slide and PickAndPlace "
+            f"Table 2 runs on the {_key}: the {'fewest' if _m == 'min' else 'most'} minutes per "
+            "run of any algorithm", functools.partial(
+                lambda f, cpu: f(per_run_s(r) for r in TABLE2
+                                 if run_info(r)["hardware"]["processor"] == cpu) / 60, _f, _cpu))
+
+for _seed in range(3):
+    add(f"ap/pnp/*:same_epochs:s{_seed}", "ablation/paper/FetchPickAndPlace", f"PickAndPlace "
+        f"ablation: epochs of seed {_seed} on which all six pairs' test success is the same",
+        functools.partial(lambda k: same_epochs(PNP_PAIRS, k), _seed))
+
+def _over(refs: list[str], measure: str, keep: Callable[[int], bool] = lambda k: True
+          ) -> list[float]:
+    """``measure`` of every seed ``keep`` takes of every setting of ``refs``."""
+    return [v for r in refs for k, v in seeds(r, measure).items() if keep(k)]
+
+
+PUSH_LEARNERS = ["bp/push/ddpg", "bp/push/dher", "bp/push/her", "bp/push/rdher"]
+for _m in ("best", "policy"):
+    for _f in (min, max):
+        add(f"bp/push/ddpg+dher+her+rdher:{_m}:s0+s1:{_f.__name__}", "benchmark/paper/FetchPush",
+            f"Push at the paper's budget, seeds 0 and 1 of DDPG, DHER, HER and RDHER: the "
+            f"{'lowest' if _f is min else 'highest'} {_m}", functools.partial(
+                lambda m, f: f(_over(PUSH_LEARNERS, m, lambda k: k in (0, 1))), _m, _f))
+PUSH_MIXES = ["bp/push/dher", "bp/push/rdher", "yp/push/dher_plain", "yp/push/rdher_plain"]
+for _seed in range(5):
+    for _f in (min, max):
+        add(f"bp+yp/push/dher+rdher+plain:final:s{_seed}:{_f.__name__}", "beyond/paper/FetchPush",
+            f"Push at the paper's budget, DHER and RDHER with either mix, seed {_seed}: the "
+            f"{'lowest' if _f is min else 'highest'} final",
+            functools.partial(lambda k, f: f(_over(PUSH_MIXES, "final", lambda j: j == k)),
+                              _seed, _f))
+SLIDE_PNP_HER_RDHER = ["bp/slide/her", "bp/pnp/her", "bp/slide/rdher", "bp/pnp/rdher"]
+for _f in (min, max):
+    add(f"bp/slide+pnp/her+rdher:best-policy:{_f.__name__}", "benchmark/paper", "Slide and "
+        "PickAndPlace at the paper's budget, HER and RDHER: the "
+        f"{'smallest' if _f is min else 'largest'} gap of best epoch over best policy retested",
+        functools.partial(lambda f: f(value(f"{r}:best") - value(f"{r}:policy")
+                                      for r in SLIDE_PNP_HER_RDHER), _f))
+PUSH_PAIRS = [p.replace("/pnp/", "/push/") for p in PNP_PAIRS]
+for _seed in range(3):
+    add(f"ap/push/*:same_epochs:s{_seed}", "ablation/paper/FetchPush", f"Push ablation: epochs "
+        f"of seed {_seed} on which all six pairs' test success is the same",
+        functools.partial(lambda k: same_epochs(PUSH_PAIRS, k), _seed))
+
+
+def _over(refs: list[str], measure: str, keep: Callable[[int], bool] = lambda k: True
+          ) -> list[float]:
+    """``measure`` of every seed ``keep`` takes of every setting of ``refs``."""
+    return [v for r in refs for k, v in seeds(r, measure).items() if keep(k)]
+
+
+PUSH_LEARNERS = ["bp/push/ddpg", "bp/push/dher", "bp/push/her", "bp/push/rdher"]
+for _m in ("best", "policy"):
+    for _f in (min, max):
+        add(f"bp/push/ddpg+dher+her+rdher:{_m}:s0+s1:{_f.__name__}", "benchmark/paper/FetchPush",
+            f"Push at the paper's budget, seeds 0 and 1 of DDPG, DHER, HER and RDHER: the "
+            f"{'lowest' if _f is min else 'highest'} {_m}", functools.partial(
+                lambda m, f: f(_over(PUSH_LEARNERS, m, lambda k: k in (0, 1))), _m, _f))
+PUSH_MIXES = ["bp/push/dher", "bp/push/rdher", "yp/push/dher_plain", "yp/push/rdher_plain"]
+for _seed in range(5):
+    for _f in (min, max):
+        add(f"bp+yp/push/dher+rdher+plain:final:s{_seed}:{_f.__name__}", "beyond/paper/FetchPush",
+            f"Push at the paper's budget, DHER and RDHER with either mix, seed {_seed}: the "
+            f"{'lowest' if _f is min else 'highest'} final",
+            functools.partial(lambda k, f: f(_over(PUSH_MIXES, "final", lambda j: j == k)),
+                              _seed, _f))
+SLIDE_PNP_HER_RDHER = ["bp/slide/her", "bp/pnp/her", "bp/slide/rdher", "bp/pnp/rdher"]
+for _f in (min, max):
+    add(f"bp/slide+pnp/her+rdher:best-policy:{_f.__name__}", "benchmark/paper", "Slide and "
+        "PickAndPlace at the paper's budget, HER and RDHER: the "
+        f"{'smallest' if _f is min else 'largest'} gap of best epoch over best policy retested",
+        functools.partial(lambda f: f(value(f"{r}:best") - value(f"{r}:policy")
+                                      for r in SLIDE_PNP_HER_RDHER), _f))
+PUSH_PAIRS = [p.replace("/pnp/", "/push/") for p in PNP_PAIRS]
+for _seed in range(3):
+    add(f"ap/push/*:same_epochs:s{_seed}", "ablation/paper/FetchPush", f"Push ablation: epochs "
+        f"of seed {_seed} on which all six pairs' test success is the same",
+        functools.partial(lambda k: same_epochs(PUSH_PAIRS, k), _seed))
+
+
+def _window(ref: str, k: int, stat: str) -> float:
+    st = report.windows(setting(ref))[k][1]
+    return 100 * (st.mean if stat == "mean" else st.std)
+
+
+for _task, _names in (("pushm", ("her", "dher", "dher_plain", "dher_f0.2")),
+                      ("reachm", ("her", "dher", "dher_plain", "dher_f0.2", "rdher",
+                                  "rdher_f0.2"))):
+    for _name in _names:
+        for _k in range(len(report.WINDOWS)):
+            for _st in ("mean", "sd"):
+                _ref = f"mc/{_task}/{_name}"
+                add(f"{_ref}:w{_k + 1}" + (":sd" if _st == "sd" else ""),
+                    f"moving/cpu/{TASKS[_task]}/{_name}", f"{_ref}: mean test success over "
+                    f"env-step window {_k + 1} of {len(report.WINDOWS)} (summary.md's), "
+                    f"{_st} over seeds, %", functools.partial(_window, _ref, _k, _st))
+
+
+def _paper_s(ref: str) -> float:
+    """The paper's Table 3 wall clock of one run for ``ref``'s task and algorithm, in seconds."""
+    h, m, sec = report.paper_time(setting(ref).task, run_info(ref).get("algo")).split(":")
+    return 3600 * int(h) + 60 * int(m) + int(sec)
+
+
+REACH_TABLE3 = ["bp/reach/ddpg", "bp/reach/her", "bp/reach/rdher"]
+for _f in (min, max):
+    add(f"bp/reach/ddpg+her+rdher:table3_ratio:{_f.__name__}", "benchmark/paper/FetchReach",
+        "Reach at the paper's budget, DDPG, HER and RDHER: the paper's Table 3 time of one run "
+        f"over ours, the {'smallest' if _f is min else 'largest'}", functools.partial(
+            lambda f: f(_paper_s(r) / per_run_s(r) for r in REACH_TABLE3), _f))
+
+
+SLIDE_PNP_DHER = ["bp/slide/dher", "bp/slide/rdher", "bp/pnp/dher", "bp/pnp/rdher"]
+HARD = [f"bp/{t}/{a}" for t in ("push", "slide", "pnp")
+        for a in ("ddpg", "her", "cher", "dher", "rdher")]
+for _f in (min, max):
+    add(f"bp/slide+pnp/dher+rdher:combined_run:{_f.__name__}", "benchmark/paper", "Slide and "
+        "PickAndPlace at the paper's budget, DHER and RDHER: the "
+        f"{'lowest' if _f is min else 'highest'} share of combined rows of a seed, mean over "
+        "all its epochs, %", functools.partial(
+            lambda f: f(_over(SLIDE_PNP_DHER, "combined_run")), _f))
+    add(f"bp/push+slide+pnp/*:wall_min:{_f.__name__}", "benchmark/paper", "Push, Slide and "
+        "PickAndPlace at the paper's budget, every algorithm: the "
+        f"{'fewest' if _f is min else 'most'} minutes per run (run_info.json)",
+        functools.partial(lambda f: f(per_run_s(r) for r in HARD) / 60, _f))
+
+
+def _her_ahead_s012() -> list[tuple[float, float, int]]:
+    """Push ablation: HER against each pair, paired over seeds 0-2 (the pairs' seeds)."""
+    her = {k: v for k, v in seeds("ap/push/her", "final").items() if k < 3}
+    return [report.paired({k: v / 100 for k, v in her.items()},
+                          {k: v / 100 for k, v in seeds(r, "final").items() if k < 3})
+            for r in _expand("ap/push/rdher_*")]
+
+
+add("ap/push/her-rdher_*:final:paired:s0-2:min", "ablation/paper/FetchPush", "Push ablation: "
+    "HER's final minus each pair's, paired over seeds 0-2, the smallest",
+    lambda: 100 * min(d for d, _, _ in _her_ahead_s012()))
+add("ap/push/her-rdher_*:final:paired:s0-2:max", "ablation/paper/FetchPush", "the same, the "
+    "largest", lambda: 100 * max(d for d, _, _ in _her_ahead_s012()))
+add("ap/push/her-rdher_*:final:paired:p:s0-2:min", "ablation/paper/FetchPush", "the same: the "
+    "smallest paired p", lambda: min(p for _, p, _ in _her_ahead_s012()))
+
+
+def _ablation_pieces() -> list[float]:
+    """Minutes per run of every one-seed piece of the Push and PickAndPlace ablations."""
+    return [m for t in ("push", "pnp") for r in _expand(f"ap/{t}/rdher_*")
+            if run_info(r).get("pieces") for m in _pieces(r)]
+
+
+for _f in (min, max):
+    add(f"ap/push+pnp/*:piece_min:{_f.__name__}", "ablation/paper", "Push and PickAndPlace "
+        f"ablations: the {'fewest' if _f is min else 'most'} minutes per run of a one-seed piece",
+        functools.partial(lambda f: f(_ablation_pieces()), _f))
+
+
+def _cost(experiment: str | None, task: str | None, col: int) -> float:
+    rows = report.cost_rows(report.profiles_data(RESULTS))
+    return sum(r[col] for r in rows if experiment in (None, r[0]) and task in (None, r[1]))
+
+
+for _exp, _task, _key in ((None, None, "total"), ("benchmark/paper", None, "benchmark/paper"),
+                          ("beyond/paper", "FetchPush", "beyond/paper/FetchPush")):
+    add(f"cost:{_key}:hours", "cost.md", f"cost.md: core-hours of {_key}",
+        functools.partial(_cost, _exp, _task, 4))
+    add(f"cost:{_key}:runs", "cost.md", f"cost.md: runs of {_key}",
+        functools.partial(_cost, _exp, _task, 3))
+add("bl/push-fast:to_0.9:max", "bench_learning/push-fast.json", "preset=fast on Push, "
+    "bench_learning's first three seeds: the most env steps to 0.9 (mean of 3)",
+    lambda: max(r["hits"]["0.9"]["window"]["env_steps"]
+                for r in _bl("push-fast")["results"].values()))
+
+
+SLIDE_COMBINED = ["yp/slide/rdher", "yp/slide/rdher_clip", "bp/slide/dher"]
+for _f in (min, max):
+    add(f"yp/slide/rdher+rdher_clip+dher:combined_run:{_f.__name__}", "beyond/paper/FetchSlide",
+        "Slide at the paper's budget, RDHER with either clip and DHER at the authors' share: "
+        f"the {'lowest' if _f is min else 'highest'} share of combined rows of a seed, mean over "
+        "all its epochs, %", functools.partial(
+            lambda f: f(_over(SLIDE_COMBINED, "combined_run")), _f))
+
+
+def _floor(task: str) -> dict:
+    rows = json.loads((RESULTS / "floor.json").read_text(encoding="utf-8"))["rows"]
+    return next(r for r in rows if r["task"] == task)
+
+
+for _abbr, _task in TASKS.items():
+    if _abbr in ("reach", "push", "slide", "pnp"):
+        add(f"floor/{_abbr}:zero", "floor.md", f"{_task}: success of a policy that does nothing "
+            "on 1,000 episodes, %", functools.partial(
+                lambda t: 100 * _floor(t)["zero_action_success"], _task))
+        for _i, _end in enumerate(("lo", "hi")):
+            add(f"floor/{_abbr}:zero:{_end}", "floor.md", f"{_task}: the 95% interval of that "
+                f"success, its {'lower' if _end == 'lo' else 'upper'} end, %", functools.partial(
+                    lambda t, i: 100 * _floor(t)["ci95"][i], _task, _i))
+        for _n in (10, 20):
+            add(f"floor/{_abbr}:best{_n}", "floor.md", f"{_task}: the expected best of 50 "
+                f"epochs of {_n} test episodes of a policy that does nothing, %",
+                functools.partial(lambda t, n: 100 * _floor(t)[f"best_of_epochs_{n}"], _task,
+                                  _n))
+
+
+add("bc/push/her:to_0.9:min", "benchmark/cpu/FetchPush/her", "preset=fast HER on Push: the "
+    "fewest env steps of a seed to a trailing mean of 3 epochs of 0.9 (bench_learning's rule)",
+    lambda: min(h["env_steps"] for h in _her_hits() if h))
+add("bc/push/her:to_0.9:max", "benchmark/cpu/FetchPush/her", "the same: the most",
+    lambda: max(h["env_steps"] for h in _her_hits() if h))
+add("bc/push/her:to_0.9:n", "benchmark/cpu/FetchPush/her", "the same: seeds that get there",
+    lambda: sum(h is not None for h in _her_hits()))
+add("bc/push/her:to_0.9:never", "benchmark/cpu/FetchPush/her", "the same: the seeds that never "
+    "do, as 'seed K' or 'seeds K, L'", lambda: (lambda ks: f"seed{'s' * (len(ks) > 1)} "
+                                                + ", ".join(ks))(
+    [str(k) for k, h in zip(setting("bc/push/her").runs, _her_hits(), strict=True) if not h]))
+add("bl/push-fast-idle:to_0.9_min", "bench_learning/push-fast-idle.json", "preset=fast on Push, "
+    "seed 0 alone on the idle Intel Xeon: minutes to a trailing mean of 3 epochs of 0.9",
+    lambda: _bl("push-fast-idle")["results"]["0"]["hits"]["0.9"]["window"]["wall_s"] / 60)
+add("bl/push-fast:paced_min:min", "bench_learning", "preset=fast on Push, seeds 1-4 (timed "
+    "beside other work): the fewest minutes to 0.9 (mean of 3) at seed 0's idle pace",
+    lambda: min(_paced_minutes()))
+add("bl/push-fast:paced_min:max", "bench_learning", "the same: the most",
+    lambda: max(_paced_minutes()))
+
+
+def source(name: str) -> Path:
+    """The committed file or directory figure ``name`` comes from (what its link must name): a
+    setting's directory, for a glob its task's, for a named figure its own ``source``."""
+    if name in NAMED:
+        return RESULTS / NAMED[name].source
+    ref = name.split(":")[0].split("-")[0]
+    if any(c in ref for c in "*?["):
+        kind, task, _ = ref.split("/")
+        return RESULTS / KINDS[kind] / TASKS[task]
+    return setting_dir(ref)
+
+
+def value(name: str) -> float | str:
+    """The figure ``name`` recomputed from the committed data.
+
+    Raises:
+        KeyError: ``name`` is no figure of the table nor of the grammar, or its data are missing.
+    """
+    if name in NAMED:
+        return NAMED[name].fn()
+    return systematic(name)
+
+
+# ------------------------------------------------------------------ the markdown
+
+MARK = re.compile(r'\[([^\[\]]*)\]\(([^()\s]*) "q:([^"]+)"\)')
+NUMBER = re.compile(r"[+\u2212-]?\d[\d,]*(?:\.\d+)?(?:e[+-]?\d+)?")
+
+
+@dataclass(frozen=True)
+class Quote:
+    path: Path
+    line: int
+    text: str
+    target: str
+    name: str
+    start: int  # offsets of the text in the file
+    end: int
+
+
+def quotes(path: Path) -> Iterator[Quote]:
+    src = path.read_text(encoding="utf-8")
+    for m in MARK.finditer(src):
+        yield Quote(path, src.count("\n", 0, m.start()) + 1, m.group(1), m.group(2),
+                    m.group(3), m.start(1), m.end(1))
+
+
+def render(val: float | str, like: str) -> str:
+    """``val`` written at the precision and in the style of the text ``like`` (its decimals or
+    significant digits, thousands commas, a leading + on a signed figure, − or - for minus)."""
+    if isinstance(val, str):
+        return val
+    body = like.lstrip("+\u2212-")
+    if "e" in body:
+        digits = len(body.split("e")[0].replace(".", "").lstrip("0"))
+        mant, exp = f"{val:.{max(digits - 1, 0)}e}".split("e")
+        out = f"{mant}e{int(exp):+03d}"
+    else:
+        places = len(body.split(".")[1]) if "." in body else 0
+        out = f"{round(val, places) + 0.0:{',' if ',' in body else ''}.{places}f}"
+        if float(out.replace(",", "")) == 0:
+            out = out.lstrip("-")  # a tie reads 0.0 or +0.0, never -0.0
+    if out.startswith("-"):
+        return ("\u2212" if "\u2212" in like else "-") + out[1:]
+    return ("+" if like[:1] in ("+", "-", "\u2212") else "") + out
+
+
+def same(a: str, b: str) -> bool:
+    """Two renderings of one figure, whatever the style of their minus and plus signs."""
+    def norm(t: str) -> str:
+        return t.replace("\u2212", "-").lstrip("+")
+    return norm(a) == norm(b)
+
+
+def problem(q: Quote, root: Path = ROOT) -> str | None:
+    """What is wrong with the quoted figure ``q``, or None."""
+    where = f"{q.path.relative_to(root) if q.path.is_relative_to(root) else q.path}:{q.line}"
+    try:
+        val = value(q.name)
+        src = source(q.name)
+    except KeyError as e:
+        return f"{where}: {q.name}: {e.args[0] if e.args else e}"
+    target = (q.path.parent / q.target.split("#")[0]).resolve()
+    if target != src.resolve():
+        return (f"{where}: {q.name}: the link goes to {q.target}, not to the data the figure "
+                f"comes from ({src.relative_to(ROOT)})")
+    if isinstance(val, str):
+        ok = q.text == val
+    else:
+        if not NUMBER.fullmatch(q.text):
+            return f"{where}: {q.name}: the text {q.text!r} is not a number"
+        ok = same(render(val, q.text), q.text)
+    if ok:
+        return None
+    return (f"{where}: {q.name}: the text says {q.text!r}, the committed data give "
+            f"{render(val, q.text)!r} ({val!r})")
+
+
+def check(files: list[Path] | None = None, root: Path = ROOT) -> tuple[int, list[str]]:
+    """(figures checked, what is wrong) over ``files`` (default: :func:`markdown_files`)."""
+    found = [q for f in files or markdown_files(root) for q in quotes(f)]
+    return len(found), [p for q in found if (p := problem(q, root)) is not None]
+
+
+def write(files: list[Path] | None = None) -> int:
+    """Rewrite every quoted figure's text from the data; returns how many changed."""
+    changed = 0
+    for f in files or markdown_files():
+        src = f.read_text(encoding="utf-8")
+        out, at = [], 0
+        for q in quotes(f):
+            val = value(q.name)
+            new = render(val, q.text)
+            if not same(new, q.text):
+                changed += 1
+            else:
+                new = q.text
+            out += [src[at:q.start], new]
+            at = q.end
+        out.append(src[at:])
+        if "".join(out) != src:
+            report.write_text_atomic(f, "".join(out))
+    return changed
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python experiments/quoted.py",
+                                 description=__doc__.split("\n\n")[0])
+    g = ap.add_mutually_exclusive_group()
+    g.add_argument("--check", action="store_true", help="compare every checked figure with the "
+                   "data (the default); exit 1 if any differs")
+    g.add_argument("--write", action="store_true", help="rewrite every checked figure's text "
+                   "from the data, at its precision")
+    g.add_argument("--list", action="store_true", help="the named figures and their docs")
+    args = ap.parse_args(argv)
+    if args.list:
+        for name, n in sorted(NAMED.items()):
+            print(f"{name}: {n.doc}")
+        return 0
+    if args.write:
+        print(f"{write()} figures rewritten")
+        return 0
+    n, bad = check()
+    for line in bad:
+        print(line)
+    print(f"{n} checked figures, {len(bad)} differ from the committed data")
+    return 1 if bad else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
