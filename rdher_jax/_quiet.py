@@ -3,10 +3,11 @@
 The learner uses one module of brax, its running-statistics normaliser, which needs only jax and
 flax; but ``import brax`` runs ``brax/__init__.py``, which imports ``brax.base`` and so MJX,
 trimesh and scipy: about 0.5 s of every command's start-up on an idle 2-core CPU, for a physics
-backend the native path never runs (``docs/performance.md``, 'Start-up'). ``running_statistics()``
-imports the normaliser with ``brax/__init__.py`` deferred until something reads an attribute of
-the package itself (``brax.State``, ``brax.base``, ...): then it runs in full, as a plain
-``import brax`` would have.
+backend the native path never runs (``docs/performance.md``, 'Start-up'). :func:`defer_brax_init`,
+a step of start-up (``rdher_jax.startup``; importing a module never does it), registers ``brax``
+with its ``__init__`` deferred until something reads an attribute of the package itself
+(``brax.State``, ``brax.base``, ...): then it runs in full, as a plain ``import brax`` would
+have. Without that step, ``import brax...`` is the plain one.
 """
 
 from __future__ import annotations
@@ -33,8 +34,9 @@ class _DeferredPackage(types.ModuleType):
         return getattr(self, name)
 
 
-def running_statistics():
-    """``brax.training.acme.running_statistics``, imported without ``brax/__init__.py``."""
+def defer_brax_init() -> None:
+    """Register the ``brax`` package with its ``__init__`` deferred (nothing if brax is
+    imported already), so that importing its normaliser imports no MJX."""
     if "brax" not in sys.modules:
         spec = importlib.util.find_spec("brax")
         if spec is not None and spec.submodule_search_locations is not None:
@@ -43,6 +45,8 @@ def running_statistics():
             pkg.__path__ = list(spec.submodule_search_locations)
             pkg.__package__ = "brax"
             sys.modules["brax"] = pkg
-    from brax.training.acme import running_statistics as rs
 
-    return rs
+
+def brax_deferred() -> bool:
+    """Whether ``brax`` is registered with its ``__init__`` still deferred."""
+    return isinstance(sys.modules.get("brax"), _DeferredPackage)

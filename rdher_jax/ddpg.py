@@ -18,10 +18,14 @@ from flax import struct
 
 from rdher_jax import _quiet
 from rdher_jax.config import TARGET_CLIPS  # the critic target's clip ranges
+from rdher_jax.envs.notices import quiet_mjx
 from rdher_jax.networks import Actor, Critic
 
-# brax's normaliser, without brax/__init__.py's import of MJX (rdher_jax._quiet).
-running_statistics = _quiet.running_statistics()
+# brax's normaliser. After start-up it imports without MJX (rdher_jax._quiet); a plain import
+# of brax imports MJX, whose Warp notices are dropped there, as everywhere MJX is imported.
+if not _quiet.brax_deferred():
+    quiet_mjx()
+from brax.training.acme import running_statistics  # noqa: E402
 
 Params = Any
 

@@ -9,6 +9,8 @@ module of the package changes no other package's state: what start-up changes, i
 
 The order, and why:
 
+0. brax is registered with its ``__init__`` deferred (``rdher_jax._quiet``): the learner's
+   one module of brax, its normaliser, then imports without MJX (about 0.5 s);
 1. the native physics' FFI handlers start compiling on a background thread (a C++ build on a
    machine that never ran the project; it needs nothing from JAX, so it overlaps JAX's import);
 2. host devices: ``jax_num_cpu_devices`` (``overlap=true`` collects on a second CPU device);
@@ -68,6 +70,9 @@ def setup(s: Startup) -> Started:
     """Set the process up as ``s`` says, in the module's order. Safe to call again: steps that
     can no longer take effect (host devices once JAX's backend is up) are left as they are, and
     what needs them reports it (``executor.overlap_devices``)."""
+    from ._quiet import defer_brax_init
+
+    defer_brax_init()
     if s.ffi:
         from .envs.ffi_build import start
 

@@ -383,8 +383,19 @@ def test_native_training_never_imports_mjx(tmp_path):
     )
     p = _python(code)
     assert p.stdout.splitlines()[-1] == "loaded []", p.stdout
-    code = ("import rdher_jax.ddpg, brax, sys; assert 'mujoco.mjx' not in sys.modules; "
+    code = ("import sys; from rdher_jax._quiet import defer_brax_init; defer_brax_init(); "
+            "import rdher_jax.ddpg, brax; assert 'mujoco.mjx' not in sys.modules; "
             "print(brax.State.__module__, 'mujoco.mjx' in sys.modules, "
             "brax.training.acme.running_statistics is rdher_jax.ddpg.running_statistics)")
     p = _python(code)
     assert p.stdout == "brax.base True True\n" and p.stderr == "", (p.stdout, p.stderr)
+
+
+def test_importing_the_learner_leaves_other_packages_alone():
+    """Without start-up, importing the learner imports brax as brax imports itself: no
+    stand-in package in sys.modules (start-up's deferral is the only place that makes one)."""
+    code = ("import sys, types, rdher_jax.ddpg; "
+            "print(type(sys.modules['brax']) is types.ModuleType, hasattr(sys.modules['brax'], "
+            "'State'))")
+    p = _python(code)
+    assert p.stdout == "True True\n", (p.stdout, p.stderr)
