@@ -555,6 +555,14 @@ for _f in (min, max):
         functools.partial(lambda f: f(_ablation_pieces()), _f))
 
 
+PIECES_NO_CHER = ["bp/push/ddpg", "bp/push/dher", "bp/push/her", "bp/pnp/ddpg"]
+for _f in (min, max):
+    add(f"bp/push+pnp/ddpg+dher+her:piece_min:{_f.__name__}", "benchmark/paper", "Push's DDPG, "
+        "DHER and HER and PickAndPlace's DDPG at the paper's budget: the "
+        f"{'fewest' if _f is min else 'most'} minutes per run of a one-seed piece",
+        functools.partial(lambda f: f(m for r in PIECES_NO_CHER for m in _pieces(r)), _f))
+
+
 def _cost(experiment: str | None, task: str | None, col: int) -> float:
     rows = report.cost_rows(report.profiles_data(RESULTS))
     return sum(r[col] for r in rows if experiment in (None, r[0]) and task in (None, r[1]))
