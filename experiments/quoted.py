@@ -630,6 +630,13 @@ add("bl/push-fast:paced_min:min", "bench_learning", "preset=fast on Push, seeds 
 add("bl/push-fast:paced_min:max", "bench_learning", "the same: the most",
     lambda: max(_paced_minutes()))
 
+add("bl/pnp-fast:to_0.5", "bench_learning/pnp-fast.json", "preset=fast on PickAndPlace, seed 0: "
+    "env steps to its first test of 0.5", lambda: float(
+        _bl("pnp-fast")["results"]["0"]["hits"]["0.5"]["single"]["env_steps"]))
+add("bl/pnp-fast:best", "bench_learning/pnp-fast.json", "the same run: its best test success "
+    "(a rate)", lambda: _bl("pnp-fast")["results"]["0"]["best"])
+add("bl/pnp-fast:steps", "bench_learning/pnp-fast.json", "the same run: its env steps",
+    lambda: float(_bl("pnp-fast")["results"]["0"]["env_steps"]))
 
 def source(name: str) -> Path:
     """The committed file or directory figure ``name`` comes from (what its link must name): a
