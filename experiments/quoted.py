@@ -555,6 +555,14 @@ for _f in (min, max):
         functools.partial(lambda f: f(_ablation_pieces()), _f))
 
 
+PIECES_NO_CHER = ["bp/push/ddpg", "bp/push/dher", "bp/push/her", "bp/pnp/ddpg"]
+for _f in (min, max):
+    add(f"bp/push+pnp/ddpg+dher+her:piece_min:{_f.__name__}", "benchmark/paper", "Push's DDPG, "
+        "DHER and HER and PickAndPlace's DDPG at the paper's budget: the "
+        f"{'fewest' if _f is min else 'most'} minutes per run of a one-seed piece",
+        functools.partial(lambda f: f(m for r in PIECES_NO_CHER for m in _pieces(r)), _f))
+
+
 def _cost(experiment: str | None, task: str | None, col: int) -> float:
     rows = report.cost_rows(report.profiles_data(RESULTS))
     return sum(r[col] for r in rows if experiment in (None, r[0]) and task in (None, r[1]))
@@ -622,6 +630,13 @@ add("bl/push-fast:paced_min:min", "bench_learning", "preset=fast on Push, seeds 
 add("bl/push-fast:paced_min:max", "bench_learning", "the same: the most",
     lambda: max(_paced_minutes()))
 
+add("bl/pnp-fast:to_0.5", "bench_learning/pnp-fast.json", "preset=fast on PickAndPlace, seed 0: "
+    "env steps to its first test of 0.5", lambda: float(
+        _bl("pnp-fast")["results"]["0"]["hits"]["0.5"]["single"]["env_steps"]))
+add("bl/pnp-fast:best", "bench_learning/pnp-fast.json", "the same run: its best test success "
+    "(a rate)", lambda: _bl("pnp-fast")["results"]["0"]["best"])
+add("bl/pnp-fast:steps", "bench_learning/pnp-fast.json", "the same run: its env steps",
+    lambda: float(_bl("pnp-fast")["results"]["0"]["env_steps"]))
 
 def source(name: str) -> Path:
     """The committed file or directory figure ``name`` comes from (what its link must name): a
