@@ -317,6 +317,8 @@ NAMED: dict[str, Named] = {}
 
 
 def add(name: str, source: str, doc: str, fn: Callable[[], float | str]) -> None:
+    if name in NAMED:  # a second definition would silently replace the first
+        raise ValueError(f"figure {name!r} is defined twice")
     NAMED[name] = Named(fn, doc, source)
 
 
@@ -408,41 +410,6 @@ for _seed in range(3):
     add(f"ap/pnp/*:same_epochs:s{_seed}", "ablation/paper/FetchPickAndPlace", f"PickAndPlace "
         f"ablation: epochs of seed {_seed} on which all six pairs' test success is the same",
         functools.partial(lambda k: same_epochs(PNP_PAIRS, k), _seed))
-
-def _over(refs: list[str], measure: str, keep: Callable[[int], bool] = lambda k: True
-          ) -> list[float]:
-    """``measure`` of every seed ``keep`` takes of every setting of ``refs``."""
-    return [v for r in refs for k, v in seeds(r, measure).items() if keep(k)]
-
-
-PUSH_LEARNERS = ["bp/push/ddpg", "bp/push/dher", "bp/push/her", "bp/push/rdher"]
-for _m in ("best", "policy"):
-    for _f in (min, max):
-        add(f"bp/push/ddpg+dher+her+rdher:{_m}:s0+s1:{_f.__name__}", "benchmark/paper/FetchPush",
-            f"Push at the paper's budget, seeds 0 and 1 of DDPG, DHER, HER and RDHER: the "
-            f"{'lowest' if _f is min else 'highest'} {_m}", functools.partial(
-                lambda m, f: f(_over(PUSH_LEARNERS, m, lambda k: k in (0, 1))), _m, _f))
-PUSH_MIXES = ["bp/push/dher", "bp/push/rdher", "yp/push/dher_plain", "yp/push/rdher_plain"]
-for _seed in range(5):
-    for _f in (min, max):
-        add(f"bp+yp/push/dher+rdher+plain:final:s{_seed}:{_f.__name__}", "beyond/paper/FetchPush",
-            f"Push at the paper's budget, DHER and RDHER with either mix, seed {_seed}: the "
-            f"{'lowest' if _f is min else 'highest'} final",
-            functools.partial(lambda k, f: f(_over(PUSH_MIXES, "final", lambda j: j == k)),
-                              _seed, _f))
-SLIDE_PNP_HER_RDHER = ["bp/slide/her", "bp/pnp/her", "bp/slide/rdher", "bp/pnp/rdher"]
-for _f in (min, max):
-    add(f"bp/slide+pnp/her+rdher:best-policy:{_f.__name__}", "benchmark/paper", "Slide and "
-        "PickAndPlace at the paper's budget, HER and RDHER: the "
-        f"{'smallest' if _f is min else 'largest'} gap of best epoch over best policy retested",
-        functools.partial(lambda f: f(value(f"{r}:best") - value(f"{r}:policy")
-                                      for r in SLIDE_PNP_HER_RDHER), _f))
-PUSH_PAIRS = [p.replace("/pnp/", "/push/") for p in PNP_PAIRS]
-for _seed in range(3):
-    add(f"ap/push/*:same_epochs:s{_seed}", "ablation/paper/FetchPush", f"Push ablation: epochs "
-        f"of seed {_seed} on which all six pairs' test success is the same",
-        functools.partial(lambda k: same_epochs(PUSH_PAIRS, k), _seed))
-
 
 def _over(refs: list[str], measure: str, keep: Callable[[int], bool] = lambda k: True
           ) -> list[float]:

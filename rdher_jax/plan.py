@@ -86,9 +86,6 @@ class Plan:
         rather than one run's state (a run's own, which evaluate and resume read as is)."""
         return self.sweep
 
-    def run_dirs(self) -> list[Path]:
-        return [Path(c.run_dir) for c in self.runs]
-
 
 class TrainingDiverged(RuntimeError):
     """Every run's losses became NaN or inf; the last good checkpoint is kept."""
