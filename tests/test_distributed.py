@@ -113,14 +113,14 @@ def test_unreachable_coordinator_is_a_one_line_error(tmp_path):
     assert len(lines) == 1 and "could not reach the coordinator" in lines[0], proc.stderr
 
 
-def test_a_multi_process_sweep_names_its_directory():
+def test_a_multi_process_sweep_names_its_directory(tmp_path):
     from rdher_jax import sweep
 
     with pytest.raises(ConfigError, match="needs sweep_dir="):
         sweep.parse_sweep_args(["env=FetchReach", "coordinator=h:1", "num_processes=2",
                                 "process_id=0"])
     cmd = sweep.parse_sweep_args(["env=FetchReach", "coordinator=h:1", "num_processes=2",
-                                  "process_id=1", "sweep_dir=/tmp/x"])
+                                  "process_id=1", f"sweep_dir={tmp_path / 's'}"])
     assert (cmd.processes.coordinator, cmd.processes.num_processes,
             cmd.processes.process_id) == ("h:1", 2, 1)
 
