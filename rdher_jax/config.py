@@ -53,6 +53,7 @@ RESUMABLE_KEYS: frozenset[str] = frozenset(
     {
         "epochs",
         "n_test_rollouts",
+        "retest",
         "backend",
         "run_dir",
         "resume",
@@ -115,6 +116,9 @@ PRESETS: dict[str, Preset] = {
             # Physics beside the learner: 1.66x cheaper cycles on 2 cores, and no more steps to
             # success over 3 seeds (docs/performance.md, 'Overlap').
             "overlap": True,
+            # The best policy's success on 100 new episodes, the figure the benchmarks report
+            # (a 10-episode test epoch at 1.0 retests at 76-83% on PickAndPlace).
+            "retest": 100,
         },
     ),
 }
@@ -158,6 +162,10 @@ class Config:
         2, "parallel rollouts per cycle (baselines' rollout_batch_size x MPI workers)"
     )
     n_test_rollouts: int = _f(10, "deterministic test episodes per epoch")
+    retest: int = _f(
+        0, "after training, the best policy is retested on this many new deterministic "
+        "episodes (python -m rdher_jax.evaluate), printed and written to retest.json; 0: none"
+    )
     buffer_size: int = _f(1_000_000, "replay buffer capacity in transitions")
     backend: str = _f(
         "auto", "physics: auto|mujoco|mjx (auto: mjx when JAX sees a GPU, else mujoco)"
@@ -191,6 +199,16 @@ class Config:
         1, "the actor is updated every policy_delay-th gradient step (TD3); 1: every step"
     )
     layer_norm: bool = _f(False, "LayerNorm in the critic's hidden layers")
+    n_critics: int = _f(
+        1, "critics trained side by side on the same TD targets, each with its own "
+        "initialisation and target network; the actor ascends their mean Q. 1: baselines' "
+        "single critic"
+    )
+    target_critics: int | None = _f(
+        None, "the TD target bootstraps from the minimum over this many of the n_critics "
+        "target critics, drawn afresh at every gradient step (REDQ); null: all of them "
+        "(n_critics=2: TD3's clipped double Q)"
+    )
     compute_dtype: str = _f(
         "float32", "dtype of the hidden layers' matmuls: float32|bfloat16 (parameters, "
         "optimiser state, losses and output layers stay float32). Changes the numerics: "
@@ -336,6 +354,12 @@ def help_text(prog: str = PROG) -> str:
         lines.extend(
             textwrap.wrap(preset.doc, 96, initial_indent=" " * 6, subsequent_indent=" " * 6)
         )
+        per_task = "; ".join(
+            f"{t}: " + " ".join(f"{k}={_fmt_value(v)}" for k, v in task.preset_values[name].items())
+            for t, task in TASKS.items() if name in task.preset_values)
+        if per_task:
+            lines.extend(textwrap.wrap(f"per task: {per_task}", 96, initial_indent=" " * 6,
+                                       subsequent_indent=" " * 6))
     return "\n".join(lines) + "\n"
 
 
@@ -389,6 +413,8 @@ def validate(cfg: Config) -> Config:
         "cher_candidates",
         "cher_sample",
         "policy_delay",
+        "n_critics",
+        "target_critics",
         "n_step",
         "episode_length",
         "stop_window",
@@ -397,7 +423,10 @@ def validate(cfg: Config) -> Config:
         v = getattr(cfg, name)
         _check(v is None or v >= 1, f"{name} must be a positive integer, got {v}")
     _check(cfg.replay_k >= 0, f"replay_k must be >= 0, got {cfg.replay_k}")
+    _check(cfg.retest >= 0, f"retest must be >= 0, got {cfg.retest}")
     _check(cfg.target_every >= 0, f"target_every must be >= 0, got {cfg.target_every}")
+    _check(cfg.target_critics is None or cfg.target_critics <= cfg.n_critics,
+           f"target_critics ({cfg.target_critics}) must not exceed n_critics ({cfg.n_critics})")
     T = episode_length(cfg)
     _check(cfg.n_step <= T, f"n_step must be <= the episode length {T}, got {cfg.n_step}")
     _check(
@@ -523,13 +552,20 @@ def split_token(tok: str) -> tuple[str, str]:
     return key, value
 
 
-def preset_tokens(name: str) -> dict[str, str]:
-    """The ``key -> value`` text of preset ``name``; ``null`` gives none."""
+def preset_values(name: str, env: str | None = None) -> dict[str, Any]:
+    """The values of preset ``name``, with task ``env``'s own values for it on top
+    (``tasks.Task.preset_values``); ``null`` gives none."""
     name = name.strip()
     if name in ("null", "~", ""):
         return {}
     _one_of("preset", name, tuple(PRESETS))
-    return {k: _fmt_value(v) for k, v in PRESETS[name].values.items()}
+    per_task = TASKS[env].preset_values.get(name, {}) if env in TASKS else {}
+    return {**PRESETS[name].values, **per_task}
+
+
+def preset_tokens(name: str, env: str | None = None) -> dict[str, str]:
+    """The ``key -> value`` text of :func:`preset_values`."""
+    return {k: _fmt_value(v) for k, v in preset_values(name, env).items()}
 
 
 def parse_args(argv: Sequence[str], base: Config | None = None, prog: str = PROG) -> Config:
@@ -551,7 +587,8 @@ def config_from_fields(raw: Mapping[str, str], base: Config | None = None) -> Co
     validate."""
     raw = dict(raw)
     if "preset" in raw:
-        raw = {**preset_tokens(raw["preset"]), **raw}
+        env = raw.get("env", (base or Config()).env).strip()
+        raw = {**preset_tokens(raw["preset"], env), **raw}
     try:
         overrides = OmegaConf.from_dotlist([f"{k}={v}" for k, v in raw.items()])
     except OmegaConfBaseException as e:

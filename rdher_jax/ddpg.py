@@ -19,7 +19,7 @@ from flax import struct
 from rdher_jax import _quiet
 from rdher_jax.config import TARGET_CLIPS  # the critic target's clip ranges
 from rdher_jax.envs.notices import quiet_mjx
-from rdher_jax.networks import Actor, Critic
+from rdher_jax.networks import Actor, Critic, CriticEnsemble
 
 # brax's normaliser. After start-up it imports without MJX (rdher_jax._quiet); a plain import
 # of brax imports MJX, whose Warp notices are dropped there, as everywhere MJX is imported.
@@ -104,8 +104,9 @@ class DDPG(NamedTuple):
     """Pure DDPG functions produced by `make_ddpg` (see there for signatures)."""
 
     actor: Actor
-    critic: Critic
+    critic: Critic | CriticEnsemble
     init: Callable[[jax.Array, DDPGParams], DDPGState]
+    q_value: Callable[[Params, jax.Array, jax.Array, jax.Array], jax.Array]
     normalise: Callable[[DDPGState, jax.Array, jax.Array], tuple[jax.Array, jax.Array]]
     update_normaliser: Callable[[DDPGState, jax.Array, jax.Array], DDPGState]
     act: Callable[[DDPGState, jax.Array, jax.Array], jax.Array]
@@ -156,6 +157,12 @@ def critic_target(
     return jax.lax.stop_gradient(y)
 
 
+def target_subset(key: jax.Array, n_critics: int, size: int) -> jax.Array:
+    """The ``size`` of ``n_critics`` target critics whose minimum is a step's TD target (REDQ's
+    in-target minimisation): distinct indices drawn uniformly with ``key``, ``(size,)``."""
+    return jax.random.choice(key, n_critics, (size,), replace=False)
+
+
 def _adam(learning_rate: jax.Array) -> optax.GradientTransformation:
     # inject_hyperparams keeps the learning rate in the optimiser state as an array, so a traced
     # (vmapped) learning rate is fine where plain optax.adam would need a Python float.
@@ -189,6 +196,8 @@ def make_ddpg(
     layer_norm: bool = False,
     compute_dtype: str = "float32",
     target_clip: str = "weighted",
+    n_critics: int = 1,
+    target_critics: int | None = None,
 ) -> DDPG:
     """Builds the DDPG functions for fixed dimensions and architecture.
 
@@ -211,6 +220,13 @@ def make_ddpg(
             optimiser state, losses and the output layers stay float32).
         target_clip: the critic target's clip range, "weighted" (per row, [-lam/(1-gamma), 0])
             or "unweighted" ([-1/(1-gamma), 0] for every row); see `critic_target`.
+        n_critics: critics trained side by side on the same targets (an ensemble; 1: the single
+            critic of baselines). Each has its own initialisation and target network; the actor
+            ascends their mean Q, and Q diagnostics report that mean.
+        target_critics: the TD target bootstraps from the minimum over this many of the
+            n_critics target critics, a subset drawn afresh at every gradient step (REDQ's
+            in-target minimisation; with n_critics = 2 and 2 here, TD3's clipped double Q).
+            None: all n_critics.
     Returns:
         A DDPG of pure, jittable functions.
     """
@@ -220,9 +236,22 @@ def make_ddpg(
         raise ValueError(f"compute_dtype must be float32 or bfloat16, got {compute_dtype!r}")
     dtype = None if compute_dtype == "float32" else jnp.bfloat16  # None: the float32 path
     actor = Actor(act_dim=act_dim, hidden=tuple(hidden), max_u=max_u, dtype=dtype)
-    critic = Critic(hidden=tuple(hidden), max_u=max_u, layer_norm=layer_norm, dtype=dtype)
+    if n_critics < 1:
+        raise ValueError(f"n_critics must be >= 1, got {n_critics}")
+    n_target = n_critics if target_critics is None else target_critics
+    if not 1 <= n_target <= n_critics:
+        raise ValueError(f"target_critics must be in [1, n_critics={n_critics}], got {n_target}")
+    if n_critics == 1:  # the single critic's parameters keep their shapes (no ensemble axis)
+        critic = Critic(hidden=tuple(hidden), max_u=max_u, layer_norm=layer_norm, dtype=dtype)
+    else:
+        critic = CriticEnsemble(n_critics, tuple(hidden), max_u, layer_norm, dtype)
     if policy_delay < 1:
         raise ValueError(f"policy_delay must be >= 1, got {policy_delay}")
+
+    def q_value(params: Params, obs: jax.Array, goal: jax.Array, action: jax.Array) -> jax.Array:
+        """The critics' mean Q on normalised inputs, (B,): what the actor ascends."""
+        q = critic.apply(params, obs, goal, action)
+        return q if n_critics == 1 else jnp.mean(q, axis=0)
 
     def init(key: jax.Array, hparams: DDPGParams) -> DDPGState:
         """Fresh networks (targets equal to online), Adam states and empty normalisers."""
@@ -296,20 +325,33 @@ def make_ddpg(
     ) -> tuple[jax.Array, jax.Array]:
         """Returns (mean squared TD error, mean Q(o, g, a)) for the given critic parameters.
 
-        ``key`` draws the target-smoothing noise; it is needed only when target_noise > 0.
+        ``key`` draws the target-smoothing noise and the target critics' subset; it is needed
+        only when target_noise > 0 or target_critics < n_critics. With several critics, each
+        regresses on the same targets: the loss and Q are means over critics and batch.
         """
+        needs_key = target_noise > 0.0 or n_target < n_critics
+        if needs_key and key is None:
+            raise ValueError("target_noise > 0 or target_critics < n_critics needs a PRNG key "
+                             "in critic_loss/update")
+        if n_target < n_critics:
+            key, k_subset = jax.random.split(key)
         obs, goal = normalise(state, batch.obs, batch.goal)
         next_obs, next_goal = normalise(state, batch.next_obs, batch.next_goal)
         next_action = actor.apply(state.target_actor_params, next_obs, next_goal)
         if target_noise > 0.0:
-            if key is None:
-                raise ValueError("target_noise > 0 needs a PRNG key in critic_loss/update")
             eps = target_noise * max_u * jax.random.normal(key, next_action.shape)
             eps = jnp.clip(eps, -noise_clip * max_u, noise_clip * max_u)
             next_action = jnp.clip(next_action + eps, -max_u, max_u)
         q_next = critic.apply(state.target_critic_params, next_obs, next_goal, next_action)
+        if n_critics > 1:  # (n_critics, B): the minimum over the target subset
+            if n_target < n_critics:
+                q_next = q_next[target_subset(k_subset, n_critics, n_target)]
+            q_next = jnp.min(q_next, axis=0)
         y = critic_target(batch.reward, q_next, batch.hindsight, hparams, batch.discount,
                           clip=target_clip)
+        # With several critics, y broadcasts over them; each critic's parameters see only their
+        # own term, so the mean trains each on its own squared error (Adam is blind to the
+        # 1/n_critics scale).
         q = critic.apply(critic_params, obs, goal, batch.action)
         return jnp.mean(jnp.square(q - y)), jnp.mean(q)
 
@@ -319,7 +361,7 @@ def make_ddpg(
         """Returns -mean Q(o, g, pi(o, g)) + action_l2 * mean((pi / max_u)^2)."""
         obs, goal = normalise(state, batch.obs, batch.goal)
         pi = actor.apply(actor_params, obs, goal)
-        q_pi = critic.apply(state.critic_params, obs, goal, pi)
+        q_pi = q_value(state.critic_params, obs, goal, pi)
         return -jnp.mean(q_pi) + hparams.action_l2 * jnp.mean(jnp.square(pi / max_u))
 
     def update(
@@ -338,7 +380,7 @@ def make_ddpg(
             state: learner state.
             batch: transitions with (B, ...) fields.
             hparams: supplies learning rates and loss weights.
-            key: PRNG key for target smoothing (only used when target_noise > 0).
+            key: PRNG key for target smoothing and the target critics' subset (see critic_loss).
             step: gradient-step counter; the actor steps when step % policy_delay == 0.
 
         Returns:
@@ -398,6 +440,7 @@ def make_ddpg(
     return DDPG(
         actor=actor,
         critic=critic,
+        q_value=q_value,
         init=init,
         normalise=normalise,
         update_normaliser=update_normaliser,

@@ -101,3 +101,31 @@ class Critic(nn.Module):
         """
         x = jnp.concatenate([obs, goal, action / self.max_u], axis=-1)
         return MLP(self.hidden, 1, self.layer_norm, self.dtype, name="mlp")(x)[..., 0]
+
+
+class CriticEnsemble(nn.Module):
+    """``n`` independent critics evaluated as one (flax's lifted vmap over `Critic`).
+
+    Their parameters carry a leading axis of size ``n`` (each critic initialised from its own
+    key); the output stacks their Q values, ``(n, ...)``.
+
+    Attributes:
+        n: number of critics.
+        hidden, max_u, layer_norm, dtype: as `Critic`'s.
+    """
+
+    n: int
+    hidden: Sequence[int] = (256, 256, 256)
+    max_u: float = 1.0
+    layer_norm: bool = False
+    dtype: Any = None
+
+    @nn.compact
+    def __call__(self, obs: jax.Array, goal: jax.Array, action: jax.Array) -> jax.Array:
+        """Args as `Critic`'s. Returns: Q values, (n, ...)."""
+        critics = nn.vmap(
+            Critic, variable_axes={"params": 0}, split_rngs={"params": True},
+            in_axes=None, out_axes=0, axis_size=self.n,
+        )
+        return critics(self.hidden, self.max_u, self.layer_norm, self.dtype, name="ensemble")(
+            obs, goal, action)

@@ -137,6 +137,7 @@ def make_program(cfg, env) -> Program:
         target_noise=cfg.target_noise, noise_clip=cfg.noise_clip,
         policy_delay=cfg.policy_delay, layer_norm=cfg.layer_norm,
         compute_dtype=cfg.compute_dtype, target_clip=cfg.target_clip,
+        n_critics=cfg.n_critics, target_critics=cfg.target_critics,
     )
     n_envs, n_test = cfg.num_envs, cfg.n_test_rollouts
     capacity_episodes = rb.init(cfg.buffer_size, T, 1, 1, 1).capacity_episodes
@@ -186,7 +187,7 @@ def make_program(cfg, env) -> Program:
         """Per-source sums and counts of Q minus the observed return, on one fresh batch."""
         b = relabeller.sample(key, ts.relabel, ts.buffer, hp.relabel, jnp.int32(0))
         obs, goal = agent.normalise(ds, b.obs, b.goal)
-        q = agent.critic.apply(ds.critic_params, obs, goal, b.action)
+        q = agent.q_value(ds.critic_params, obs, goal, b.action)
         ret = relabel.observed_return(ts.buffer, b, env.compute_reward, hp.ddpg.gamma)
         lam = jnp.where(b.hindsight, hp.ddpg.lambda_h, hp.ddpg.lambda_r)
         one_hot = (b.source[:, None] == jnp.arange(len(SOURCE_NAMES))[None, :]).astype(q.dtype)

@@ -553,3 +553,113 @@ def test_target_clip_reaches_the_critic_loss():
 def test_unknown_target_clip_is_refused():
     with pytest.raises(ValueError, match="target_clip must be one of"):
         make_ddpg(OBS, GOAL, ACT, target_clip="none")
+
+
+# An ensemble of 3 critics whose targets take the minimum over 2 of them, drawn per step (REDQ).
+D_ENS = make_ddpg(
+    OBS, GOAL, ACT, hidden=(8, 8), max_u=MAX_U, clip_obs=CLIP_OBS, norm_eps=NORM_EPS,
+    norm_clip=NORM_CLIP, n_critics=3, target_critics=2,
+)
+
+
+def _member(params, e: int):
+    """Critic e of an ensemble's parameters, in a single critic's layout."""
+    return {"params": jax.tree.map(lambda x: x[e], params["params"]["ensemble"])}
+
+
+def _ens_state(h: DDPGParams, norm_data: Transition, d=D_ENS) -> DDPGState:
+    state = jax.jit(d.init)(jax.random.key(0), h)
+    other = jax.jit(d.init)(jax.random.key(1), h)
+    state = state.replace(target_critic_params=other.critic_params,
+                          target_actor_params=other.actor_params)
+    return jax.jit(d.update_normaliser)(state, norm_data.obs, norm_data.goal)
+
+
+def test_ensemble_critics_are_distinct_and_shaped():
+    h = DDPGParams.default()
+    state = _ens_state(h, _batch(2))
+    kernels = state.critic_params["params"]["ensemble"]["mlp"]["hidden_0"]["kernel"]
+    assert kernels.shape == (3, OBS + GOAL + ACT, 8)
+    assert not np.allclose(kernels[0], kernels[1]) and not np.allclose(kernels[1], kernels[2])
+    # The single-critic layout is unchanged (checkpoints and rows of n_critics=1 runs).
+    assert "mlp" in init(jax.random.key(0), h).critic_params["params"]
+
+
+def test_target_subset_draws_distinct_indices():
+    seen = set()
+    for i in range(40):
+        idx = np.asarray(jax.random.choice(jax.random.key(i), 5, (2,), replace=False))
+        assert len(set(idx.tolist())) == 2 and idx.min() >= 0 and idx.max() < 5
+        seen.add(tuple(sorted(idx.tolist())))
+    assert len(seen) >= 8  # of the 10 pairs
+
+
+def test_ensemble_losses_match_numpy():
+    h = DDPGParams.default(lambda_r=1.0, lambda_h=0.5, gamma=0.9, action_l2=0.3)
+    norm_data = _batch(2)
+    state, batch, key = _ens_state(h, norm_data), _batch(3), jax.random.key(7)
+    c_loss, q_mean = jax.jit(D_ENS.critic_loss)(state.critic_params, state, batch, h, key)
+    a_loss = jax.jit(D_ENS.actor_loss)(state.actor_params, state, batch, h)
+
+    def norm(x, data):
+        return _np_normalise(x, data, CLIP_OBS, NORM_EPS, NORM_CLIP)[0]
+
+    o, g = norm(batch.obs, norm_data.obs), norm(batch.goal, norm_data.goal)
+    o2, g2 = norm(batch.next_obs, norm_data.obs), norm(batch.next_goal, norm_data.goal)
+    a2 = _np_actor(state.target_actor_params, o2, g2, MAX_U)
+    q_next = np.stack([_np_critic(_member(state.target_critic_params, e), o2, g2, a2, MAX_U)
+                       for e in range(3)])
+    # The subset the learner draws: the second half of the critic loss's key split.
+    idx = np.asarray(jax.random.choice(jax.random.split(key)[1], 3, (2,), replace=False))
+    lam = np.where(np.asarray(batch.hindsight), 0.5, 1.0)
+    y = np.clip(lam * np.asarray(batch.reward) + 0.9 * q_next[idx].min(0), -lam / 0.1, 0.0)
+    a = np.asarray(batch.action, np.float64)
+    q = np.stack([_np_critic(_member(state.critic_params, e), o, g, a, MAX_U) for e in range(3)])
+    assert float(c_loss) == pytest.approx(np.mean((q - y) ** 2), rel=1e-4, abs=1e-6)
+    assert float(q_mean) == pytest.approx(np.mean(q), rel=1e-4, abs=1e-6)
+    pi = _np_actor(state.actor_params, o, g, MAX_U)
+    q_pi = np.mean([_np_critic(_member(state.critic_params, e), o, g, pi, MAX_U)
+                    for e in range(3)], axis=0)
+    assert float(a_loss) == pytest.approx(-np.mean(q_pi) + 0.3 * np.mean((pi / MAX_U) ** 2),
+                                          rel=1e-4, abs=1e-6)
+    # Another key, another subset: the target (and the loss) changes with it, and the minimum
+    # over all three is never above the minimum over any two.
+    losses_by_key = {round(float(jax.jit(D_ENS.critic_loss)(
+        state.critic_params, state, batch, h, jax.random.key(k))[0]), 6) for k in range(12)}
+    assert len(losses_by_key) >= 2
+    with pytest.raises(ValueError, match="PRNG key"):
+        D_ENS.critic_loss(state.critic_params, state, batch, h)
+
+
+def test_twin_critics_take_the_minimum_of_both_targets():
+    d = make_ddpg(OBS, GOAL, ACT, hidden=(8, 8), max_u=MAX_U, clip_obs=CLIP_OBS,
+                  norm_eps=NORM_EPS, norm_clip=NORM_CLIP, n_critics=2)
+    h = DDPGParams.default(gamma=0.9)
+    norm_data = _batch(2)
+    state, batch = _ens_state(h, norm_data, d), _batch(4)
+    o2 = _np_normalise(batch.next_obs, norm_data.obs, CLIP_OBS, NORM_EPS, NORM_CLIP)[0]
+    g2 = _np_normalise(batch.next_goal, norm_data.goal, CLIP_OBS, NORM_EPS, NORM_CLIP)[0]
+    o = _np_normalise(batch.obs, norm_data.obs, CLIP_OBS, NORM_EPS, NORM_CLIP)[0]
+    g = _np_normalise(batch.goal, norm_data.goal, CLIP_OBS, NORM_EPS, NORM_CLIP)[0]
+    a2 = _np_actor(state.target_actor_params, o2, g2, MAX_U)
+    q_next = np.minimum(*[_np_critic(_member(state.target_critic_params, e), o2, g2, a2, MAX_U)
+                          for e in range(2)])
+    y = np.clip(np.asarray(batch.reward) + 0.9 * q_next, -10.0, 0.0)
+    q = np.stack([_np_critic(_member(state.critic_params, e), o, g,
+                             np.asarray(batch.action, np.float64), MAX_U) for e in range(2)])
+    # No subset to draw: no key needed, and the loss is deterministic.
+    c_loss = float(jax.jit(d.critic_loss)(state.critic_params, state, batch, h)[0])
+    assert c_loss == pytest.approx(np.mean((q - y) ** 2), rel=1e-4, abs=1e-6)
+    # A gradient step moves every critic, and each only by its own error.
+    new, m = jax.jit(d.update)(state, batch, h)
+    moved = [not np.allclose(_member(new.critic_params, e)["params"]["mlp"]["out"]["kernel"],
+                             _member(state.critic_params, e)["params"]["mlp"]["out"]["kernel"])
+             for e in range(2)]
+    assert all(moved) and np.isfinite(float(m["critic_loss"]))
+
+
+def test_ensemble_options_are_checked():
+    with pytest.raises(ValueError, match="n_critics"):
+        make_ddpg(OBS, GOAL, ACT, n_critics=0)
+    with pytest.raises(ValueError, match="target_critics"):
+        make_ddpg(OBS, GOAL, ACT, n_critics=2, target_critics=3)

@@ -79,3 +79,35 @@ def test_override_back_to_the_default_value() -> None:
     cfg = parse_args(["preset=fast", "terminal=none", "layers=3"])
     assert (cfg.terminal, cfg.layers) == ("none", 3)
     assert (cfg.num_envs, cfg.policy_delay) == (1, 2)
+
+
+def documented_budgets() -> dict[str, tuple[int, int]]:
+    """{task: (epochs, env steps)} from the per-task budget table under the preset's table."""
+    text = DOC.read_text(encoding="utf-8")
+    table = text.split("| task | `epochs` under `preset=fast` | env steps |", 1)[1]
+    rows = {}
+    for line in table.split("\n\n", 1)[0].strip().splitlines()[1:]:
+        task, epochs, steps = (c.strip() for c in line.strip().strip("|").split("|"))
+        rows[task] = (int(epochs), int(steps.replace(",", "")))
+    return rows
+
+
+def test_fast_budget_per_task_is_the_documented_table() -> None:
+    from rdher_jax.config import episode_length, resolve
+    from rdher_jax.tasks import TASKS
+
+    doc = documented_budgets()
+    assert doc == {t: (task.preset_values["fast"]["epochs"], doc[t][1])
+                   for t, task in TASKS.items() if "fast" in task.preset_values}
+    for task, (epochs, steps) in doc.items():
+        for argv in (["preset=fast", f"env={task}"], [f"env={task}", "preset=fast"]):
+            cfg = resolve(parse_args(argv))
+            assert cfg.epochs == epochs, (argv, cfg.epochs)
+            assert cfg.epochs * cfg.n_cycles * cfg.num_envs * episode_length(cfg) == steps
+        # An explicit epochs wins, and the preset's other values are the same for every task.
+        assert parse_args(["preset=fast", f"env={task}", "epochs=3"]).epochs == 3
+        assert parse_args(["preset=fast", f"env={task}"]).n_batches == PRESETS["fast"].values[
+            "n_batches"]
+    # A task without its own budget keeps its default epochs.
+    assert resolve(parse_args(["preset=fast", "env=FetchReach"])).epochs == TASKS[
+        "FetchReach"].epochs

@@ -2,6 +2,7 @@
 
 import csv
 import dataclasses
+import json
 import os
 import signal
 import subprocess
@@ -193,6 +194,14 @@ def test_run_outputs_and_evaluate(tmp_path):
     assert [int(r["epoch"]) for r in rows] == [1, 2]
     r = evaluate(run, episodes=4)
     assert 0.0 <= r["success"] <= 1.0 and r["episodes"] == 4 and r["backend"] == "mujoco"
+    # The end-of-run retest (preset=fast sets retest=100): the same episodes as evaluate's,
+    # written to retest.json, and the line that says so.
+    line = train_mod.retest(run, 4)
+    saved = json.loads((run / train_mod.RETEST_FILE).read_text())
+    assert saved == r
+    want = round(r["success"] * 4)
+    assert line == (f"retest: the best policy (epoch {r['epoch']}) succeeds on {want} of 4 new "
+                    f"episodes ({100 * r['success']:.0f}%)")
 
 
 @pytest.mark.slow  # the default suite's learning check is test_algos' RDHER on the same task
