@@ -6,6 +6,7 @@ the same program, and the benchmark's second call resumes first the algorithm co
 """
 
 import csv
+import dataclasses
 import json
 import math
 import re
@@ -845,3 +846,25 @@ def test_bench_harness_machine_limits(tmp_path):
     bad.write_text("raise SystemExit(3)\n")
     with pytest.raises(subprocess.CalledProcessError):
         harness.machine_limits(str(bad))
+
+
+def test_solve_profile_runs_the_tasks_recipe_and_budget(tmp_path):
+    """The solve profile's sweeps are preset=fast with each task's own values (its budget: Push
+    500,000 env steps, PickAndPlace 600,000, Slide 2,000,000), as ``train env=<task>
+    preset=fast`` runs them but sequential, and parse as sweeps."""
+    from rdher_jax import sweep
+    from rdher_jax.config import episode_length, parse_args, resolve
+
+    jobs = profiles.make_jobs("benchmark", "solve", profiles.SOLVE_TASKS, tmp_path, None, None,
+                              lambda task: [("her", "her", None, ())])
+    steps = {"FetchPush": 500_000, "FetchPickAndPlace": 600_000, "FetchSlide": 2_000_000}
+    assert [j.task for j in jobs] == list(steps)
+    for job in jobs:
+        plan = sweep.parse_sweep_args(profiles.sweep_args(job, False)[0]).plan
+        cfg = plan.base
+        assert (cfg.epochs * cfg.n_cycles * cfg.num_envs * episode_length(cfg)
+                == steps[job.task]) and job.seeds == 5 and not cfg.overlap
+        one = resolve(parse_args([f"env={job.task}", "preset=fast", "overlap=false",
+                                  "progress=false"]))
+        assert dataclasses.replace(cfg, run_dir=None, seed=0) == dataclasses.replace(
+            one, run_dir=None, seed=0), job.task
