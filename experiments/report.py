@@ -37,8 +37,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from bench_learning import first_hit
+
 from rdher_jax.runlog import write_text_atomic
-from rdher_jax.tasks import PAPER_TASKS, TASKS
+from rdher_jax.tasks import PAPER_TASKS, SOLVE_GOALS, TASKS
 
 HERE = Path(__file__).resolve().parent
 KINDS = ("ablation", "benchmark", "moving", "beyond")
@@ -423,6 +425,29 @@ def _wall_rows(data: Sequence[SettingData], paper: bool) -> list[list[str]]:
     return rows
 
 
+def _goal_lines(data: Sequence[SettingData]) -> list[str]:
+    """Per seed of each setting: its retest against the task's goal, and the env steps and
+    minutes (training clock) to the first trailing mean of 3 test epochs at the threshold."""
+    out = ["## Against the goal", "",
+           "The goal per task (`rdher_jax/tasks.py`, `SOLVE_GOALS`): the best policy retested on "
+           "fresh episodes, mean over seeds, at or above the goal within the task's budget. Per "
+           "seed, the first epoch whose trailing mean of 3 test evaluations reaches the "
+           "threshold: env steps and minutes of the training clock ('-': never).", ""]
+    rows = []
+    for s in data:
+        goal, threshold = SOLVE_GOALS.get(s.task, (math.nan, math.nan))
+        policy = per_seed(s)["policy"]
+        for seed, runs in s.runs.items():
+            hit = (first_hit(runs, threshold, 3) or {}).get("window")
+            rows.append([s.task, s.meta.get("label", s.name), str(seed), pct(goal),
+                         pct(policy[seed]) if seed in policy else "-",
+                         pct(threshold), f"{hit['env_steps']:,}" if hit else "-",
+                         f"{hit['wall_s'] / 60:.1f}" if hit else "-"])
+    head = ["task", "setting", "seed", "goal", "retest", "threshold (mean of 3)", "env steps",
+            "minutes"]
+    return [*out, *_md_table(head, rows), ""]
+
+
 def summary_markdown(kind: str, profile: str, data: Sequence[SettingData]) -> str:
     out = _intro(kind, profile, data)
     tasks = _by_task(data)
@@ -461,6 +486,8 @@ def summary_markdown(kind: str, profile: str, data: Sequence[SettingData]) -> st
         out += _md_table(["setting", "λ_r / λ_h", *tasks], rows)
     out.append("")
 
+    if profile == "solve":
+        out += _goal_lines(data)
     out += ["## Per task: best and final success (%)", ""]
     tested = any(policy_episodes(s) for s in data)
     if tested:

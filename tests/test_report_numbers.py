@@ -205,3 +205,24 @@ def test_ablation_marks_the_papers_pick(results):
     assert pick == {"HER": "", "RDHER 1/2": "", "RDHER 4/0.5": "yes"}
     rows = read_csv(results / "ablation/hand/summary.csv")
     assert rows["rdher_lr4_lh0.5"]["paper_best"] == ""  # Table 2 only beside the benchmark
+
+
+def test_solve_profile_times_each_seed_to_the_goal_threshold():
+    """The solve profile's 'Against the goal' rows: the first trailing mean of 3 at the task's
+    threshold (Slide 0.8: float32 7/10-style rates a hair under count as reached), per seed."""
+    def rows(succ):
+        return [{"epoch": str(i + 1), "env_steps": str(2500 * (i + 1)),
+                 "wall_time": str(60.0 * (i + 1)), "test_success": str(x)}
+                for i, x in enumerate(succ)]
+
+    s = report.SettingData("FetchSlide", "her", {"label": "HER", "runs": {
+        "s0": {"best_policy": {"success": 0.83}}}},
+        {0: rows([0.5, 0.9, 0.8, 0.7, 0.9]),          # (0.9+0.8+0.7)/3 = 0.8 at epoch 4
+         1: rows([0.7999999, 0.8, 0.8000001, 0.1])})  # mean a hair under 0.8: epoch 3
+    lines = report._goal_lines([s])
+    assert lines[0] == "## Against the goal"
+    table = [line for line in lines if line.startswith("| FetchSlide")]
+    assert table == ["| FetchSlide | HER | 0 | 80.0 | 83.0 | 80.0 | 10,000 | 4.0 |",
+                     "| FetchSlide | HER | 1 | 80.0 | - | 80.0 | 7,500 | 3.0 |"]
+    never = report.SettingData("FetchPush", "her", {}, {0: rows([0.9, 0.9, 0.8])})
+    assert report._goal_lines([never])[-2] == "| FetchPush | her | 0 | 97.0 | - | 90.0 | - | - |"
