@@ -53,12 +53,14 @@ def first_hit(rows: list[dict], threshold: float, window: int) -> dict | None:
 STARTUP_FILE = "bench_startup_s.txt"  # written beside a run started fresh by this script
 
 
-def run_seed(run_dir: Path, seed: int, settings: list[str], train: bool = True) -> list[dict]:
+def run_seed(run_dir: Path, seed: int, settings: list[str], train: bool = True,
+             retest: int = 0) -> list[dict]:
     """Train (or resume, or just read) one seed; returns its metrics rows.
 
     A run this script starts fresh also gets its start-up time, from starting the process to
     the start of the training clock (imports, env build, init; the trainer writes run_info.json
-    just before its clock starts), kept in ``<run_dir>/bench_startup_s.txt``."""
+    just before its clock starts), kept in ``<run_dir>/bench_startup_s.txt``. ``retest`` > 0:
+    the run ends by retesting its best policy on that many new episodes (``retest.json``)."""
     if not train:
         if not (run_dir / "metrics.csv").exists():
             return []
@@ -71,12 +73,27 @@ def run_seed(run_dir: Path, seed: int, settings: list[str], train: bool = True) 
     else:
         argv += [*settings, f"seed={seed}", f"run_dir={run_dir}"]
     t_start = time.time()
-    subprocess.run(argv + ["progress=false"], check=True)
+    subprocess.run(argv + ["progress=false"] + ([f"retest={retest}"] if retest else []),
+                   check=True)
     if fresh:
         startup = (run_dir / "run_info.json").stat().st_mtime - t_start
         (run_dir / STARTUP_FILE).write_text(f"{startup:.3f}\n")
     with open(run_dir / "metrics.csv", newline="") as f:
         return list(csv.DictReader(f))
+
+
+def read_retest(run_dir: Path) -> dict | None:
+    """The run's end-of-training retest (``retest.json``): success, epoch and episodes."""
+    try:
+        r = json.loads((run_dir / "retest.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return {k: r[k] for k in ("success", "epoch", "episodes")}
+
+
+def retest_cell(r: dict) -> str:
+    t = r.get("retest")
+    return "-" if not t else f"{100 * t['success']:.0f}% of {t['episodes']} (epoch {t['epoch']})"
 
 
 def startup_s(run_dir: Path) -> float | None:
@@ -106,8 +123,8 @@ def summary(out: Path, window: int) -> str:
         "the start of training, compilation included.",
         "",
         "| setting | keys | seed | env steps run | best | to 0.5 | to 0.9 | "
-        f"to 0.9, mean of {window} |",
-        "|---|---|---|---|---|---|---|---|",
+        f"to 0.9, mean of {window} | retest of the best policy |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for path in sorted(out.glob("*.json")):
         d = json.loads(path.read_text())
@@ -116,7 +133,8 @@ def summary(out: Path, window: int) -> str:
             h5, h9 = r["hits"]["0.5"], r["hits"]["0.9"]
             lines.append(
                 f"| {path.stem} | `{keys}` | {seed} | {r['env_steps']:,} | {r['best']:.2f} | "
-                f"{fmt(h5, 'single')} | {fmt(h9, 'single')} | {fmt(h9, 'window')} |")
+                f"{fmt(h5, 'single')} | {fmt(h9, 'single')} | {fmt(h9, 'window')} | "
+                f"{retest_cell(r)} |")
     text = "\n".join(lines) + "\n"
     (out / "summary.md").write_text(text)
     return text
@@ -140,8 +158,9 @@ def write_tables(out: Path, name: str, data: dict, window: int) -> str:
         "",
         "| seed | epochs | env steps | minutes | best | "
         + " | ".join(f"to {t} | to {t}, mean of {window}" for t in THRESHOLDS)
-        + f" | start-up (s) | to {THRESHOLDS[-1]}, mean of {window}, from process start |",
-        "|---" * (7 + 2 * len(THRESHOLDS)) + "|",
+        + f" | start-up (s) | to {THRESHOLDS[-1]}, mean of {window}, from process start | "
+        "retest of the best policy |",
+        "|---" * (8 + 2 * len(THRESHOLDS)) + "|",
     ]
     for seed, r in results.items():
         cells = []
@@ -151,7 +170,7 @@ def write_tables(out: Path, name: str, data: dict, window: int) -> str:
         last = (r["hits"][str(THRESHOLDS[-1])] or {}).get("window")
         cells += ["-" if up is None else f"{up:.1f}",
                   "-" if up is None or last is None
-                  else f"{(up + last['wall_s']) / 60:.1f} min"]
+                  else f"{(up + last['wall_s']) / 60:.1f} min", retest_cell(r)]
         lines.append(f"| {seed} | {r['epochs']} | {r['env_steps']:,} | {r['wall_s'] / 60:.1f} | "
                      f"{r['best']:.2f} | " + " | ".join(cells) + " |")
     if limits is not None:
@@ -200,6 +219,9 @@ def main() -> None:
                     help="a machine-ceilings script (run as `python PATH --json FILE`, printing "
                     "a table) to run before the seeds; its table goes into the report beside "
                     "the runs, so they are read against the same day's machine")
+    ap.add_argument("--retest", type=int, default=100, metavar="N",
+                    help="each run ends by retesting its best policy on N new episodes "
+                    "(the trainer's retest=N; 0: none); its result goes into the tables")
     ap.add_argument("settings", nargs="*", help="key=value training settings")
     args = ap.parse_args()
 
@@ -213,10 +235,14 @@ def main() -> None:
     if not args.name:
         ap.error("--name is required (or --summary)")
     limits = None if args.report_only else harness.machine_limits(args.limits_script)
+    if args.report_only and (out / f"{args.name}.json").is_file():  # keep what the runs had
+        before = json.loads((out / f"{args.name}.json").read_text())
+        limits, args.note = before.get("machine_limits"), args.note or before.get("note", "")
     results = {}
     for seed in args.seeds:
         run_dir = Path(args.runs_dir) / f"{args.name}-s{seed}"
-        rows = run_seed(run_dir, seed, args.settings, train=not args.report_only)
+        rows = run_seed(run_dir, seed, args.settings, train=not args.report_only,
+                        retest=args.retest)
         if not rows:
             continue
         (out / f"{args.name}-s{seed}.csv").write_bytes((run_dir / "metrics.csv").read_bytes())
@@ -226,6 +252,7 @@ def main() -> None:
             "wall_s": float(rows[-1]["wall_time"]) if rows else 0.0,
             "best": max((float(r["test_success"]) for r in rows), default=0.0),
             "startup_s": startup_s(run_dir),
+            "retest": read_retest(run_dir),
             "hits": {str(t): first_hit(rows, t, args.window) for t in THRESHOLDS},
             "curve": [(int(r["env_steps"]), float(r["wall_time"]), float(r["test_success"]))
                       for r in rows],
