@@ -84,7 +84,8 @@ MEASURES = ("best", "final", "mean", "policy")
 def markdown_files(root: Path = ROOT) -> list[Path]:
     """The files whose prose may quote checked figures."""
     res = root / "experiments" / "results"
-    return [root / "README.md", res / "RESULTS.md", *sorted(res.glob("**/README.md"))]
+    return [root / "README.md", res / "RESULTS.md", *sorted(res.glob("**/README.md")),
+            *sorted((root / "docs").glob("*.md"))]
 
 
 # ------------------------------------------------------------------ the data
@@ -111,6 +112,23 @@ def run_info(ref: str) -> dict:
 
 
 COLUMN_MEASURES = ("combined", "combined_run", *report.BIAS_COLS)
+HIT = re.compile(r"to(\d*\.?\d+)(m3)?")  # to0.5: first test at 0.5; to0.9m3: trailing mean of 3
+
+
+def percent(measure: str) -> bool:
+    """Whether ``measure`` is a rate the prose quotes in % (not env steps, not a bias)."""
+    return measure in MEASURES or measure.startswith("combined") or bool(
+        re.fullmatch(r"w\d", measure))
+
+
+def first_hit(rows: list[dict[str, str]], threshold: float, window: int = 1) -> float | None:
+    """bench_learning's rule: env steps of the first epoch whose test success (``window`` = 1)
+    or trailing mean of ``window`` epochs reaches ``threshold``; None if none does."""
+    import bench_learning
+
+    got = bench_learning.first_hit(rows, threshold, window) or {}
+    return float(got[key]["env_steps"]) if (key := "single" if window == 1 else "window") in got \
+        else None
 
 
 def seeds(ref: str, measure: str) -> dict[int, float]:
@@ -118,11 +136,23 @@ def seeds(ref: str, measure: str) -> dict[int, float]:
     rates in % (``best``, ``final``, ``mean``, ``policy``); ``combined``, the share of DHER-
     combined rows in a batch (``frac_dher``), mean of the last 3 epochs, in %, and
     ``combined_run`` the same over every epoch; a bias column (``bias_real``, ...), mean of its
-    finite values over the last 3 epochs, as summary.md's diagnostic."""
+    finite values over the last 3 epochs, as summary.md's diagnostic; ``w1``-``w3`` the mean
+    test success over summary.md's env-step windows, in %; ``to<x>`` the env steps to the first
+    test at ``x`` or above, ``to<x>m3`` to the first trailing mean of 3 tests there (a seed that
+    never gets there counts its last env steps, a lower bound)."""
+    if m := re.fullmatch(r"w(\d)", measure):
+        ws = report.window_seeds(setting(ref))
+        if not 1 <= int(m[1]) <= len(ws):
+            raise KeyError(f"windows are w1-w{len(ws)}")
+        return {k: 100 * v for k, v in ws[int(m[1]) - 1][1].items()}
+    if m := HIT.fullmatch(measure):
+        return {k: first_hit(rows, float(m[1]), 3 if m[2] else 1) or float(rows[-1]["env_steps"])
+                for k, rows in setting(ref).runs.items()}
     if measure in MEASURES:
         return {k: 100 * v for k, v in report.per_seed(setting(ref))[measure].items()}
     if measure not in COLUMN_MEASURES:
-        raise KeyError(f"no measure {measure!r} (one of {', '.join(MEASURES + COLUMN_MEASURES)})")
+        raise KeyError(f"no measure {measure!r} (one of {', '.join(MEASURES + COLUMN_MEASURES)}, "
+                       "w<k>, to<x>, to<x>m3)")
     col = "frac_dher" if measure.startswith("combined") else measure
     scale = 100 if col == "frac_dher" else 1
     last = None if measure == "combined_run" else report.LAST
@@ -155,16 +185,19 @@ def _over_seeds(ref: str, measure: str, stat: str) -> float:
         return max(xs.values())
     if re.fullmatch(r"ge\d+", stat):
         return sum(x >= int(stat[2:]) - 1e-4 for x in xs.values())
+    if re.fullmatch(r"lt\d+", stat):
+        return sum(x < int(stat[2:]) - 1e-4 for x in xs.values())
     if re.fullmatch(r"s\d+", stat):
         if int(stat[1:]) not in xs:
             raise KeyError(f"{ref} has no seed {stat[1:]}")
         return xs[int(stat[1:])]
-    raise KeyError(f"no statistic {stat!r} (mean, sd, lo, hi, n, min, max, s<seed>, ge<x>)")
+    raise KeyError(f"no statistic {stat!r} (mean, sd, lo, hi, n, min, max, s<seed>, ge<x>, "
+                   "lt<x>)")
 
 
 def _versus(a: str, b: str, measure: str, test: list[str]) -> float:
     """As report.py tests two settings: on the rates (rounded as report.welch rounds them)."""
-    scale = 1 if measure in report.BIAS_COLS else 100
+    scale = 100 if percent(measure) else 1
     xs = {k: v / scale for k, v in seeds(a, measure).items()}
     ys = {k: v / scale for k, v in seeds(b, measure).items()}
     if test in ([], ["p"]):
@@ -213,17 +246,15 @@ def systematic(name: str) -> float | str:
     if len(parts) < 2:
         raise KeyError(f"unknown figure {name!r}")
     ref, measure, rest = parts[0], parts[1], parts[2:]
-    if re.fullmatch(r"w\d", measure) and "-" not in ref and rest in ([], ["sd"]):
-        k = int(measure[1:]) - 1
-        if not 0 <= k < len(report.WINDOWS):
-            raise KeyError(f"{name!r}: windows are w1-w{len(report.WINDOWS)}")
-        st = report.windows(setting(ref))[k][1]
-        return 100 * (st.std if rest else st.mean)
+    if ref.startswith("paper/"):
+        return paper(ref, measure, rest)
     if measure == "wall" and not rest and "-" not in ref:
-        return minutes_seconds(per_run_s(ref))
-    if measure == "wall_mmss" and not rest and "-" not in ref:
-        sec = int(round(per_run_s(ref)))
-        return f"{sec // 60}:{sec % 60:02d}"
+        return Duration(per_run_s(ref))
+    if measure == "piece_wall" and len(rest) == 1 and rest[0].isdigit() and "-" not in ref:
+        pieces = run_info(ref).get("pieces") or []
+        if int(rest[0]) >= len(pieces):
+            raise KeyError(f"{ref} has no piece {rest[0]}")
+        return Duration(float(pieces[int(rest[0])]["wall_clock_s"]))
     if measure == "wall_ratio" and rest == [] and "-" in ref:
         a, b = ref.split("-", 1)
         return per_run_s(a) / per_run_s(b if "/" in b else a.rsplit("/", 1)[0] + "/" + b)
@@ -263,12 +294,48 @@ def systematic(name: str) -> float | str:
     return min(vals) if over == "min" else max(vals) if over == "max" else vals[0]
 
 
-# ------------------------------------------------------------------ named figures
+def paper(ref: str, measure: str, rest: list[str]) -> float:
+    """``paper/<task>/<algo>:table2`` (the paper's best-policy success, %) or ``:table3`` (its
+    wall clock of one run), as ``rdher_jax/tasks.py`` holds them."""
+    parts = ref.split("/")
+    if len(parts) != 3 or parts[1] not in TASKS or measure not in ("table2", "table3") or rest:
+        raise KeyError(f"not a figure of the paper: {ref}:{measure} "
+                       f"(paper/<{'|'.join(TASKS)}>/<algo>:table2|table3)")
+    task, algo = TASKS[parts[1]], parts[2]
+    if measure == "table2":
+        val = report.paper_best(task, algo)
+        if val is None:
+            raise KeyError(f"the paper's Table 2 has no {task} {algo}")
+        return float(val)
+    return Duration(_table3_s(task, algo))
 
-def minutes_seconds(seconds: float) -> str:
-    """``2016.4`` -> ``'33 min 16 s'`` (rounded to the second; hours as minutes)."""
+
+def _table3_s(task: str, algo: str | None) -> float:
+    """The paper's Table 3 wall clock of one run of ``algo`` on ``task``, in seconds."""
+    hms = report.paper_time(task, algo)
+    if hms == "-":
+        raise KeyError(f"the paper's Table 3 has no {task} {algo}")
+    h, m, sec = hms.split(":")
+    return 3600 * int(h) + 60 * int(m) + int(sec)
+
+
+class Duration(float):
+    """A wall clock in seconds, written in the style of the text that quotes it (:func:`clock`)."""
+
+
+def clock(seconds: float, like: str) -> str:
+    """``seconds`` to the second in the style of ``like``: ``1:45:13`` or ``33:16`` (as many
+    colons as ``like``), ``1 h 45 min 13 s`` (if ``like`` has hours) or ``105 min 13 s``."""
     s = int(round(seconds))
+    if ":" in like:
+        return f"{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}" if like.count(":") == 2 \
+            else f"{s // 60}:{s % 60:02d}"
+    if re.match(r"\d+ h ", like):
+        return f"{s // 3600} h {s % 3600 // 60} min {s % 60} s"
     return f"{s // 60} min {s % 60} s"
+
+
+# ------------------------------------------------------------------ named figures
 
 
 def per_run_s(ref: str) -> float:
@@ -299,11 +366,6 @@ def window_mean(rows: list[dict[str, str]], lo: float, hi: float, col: str = "te
     return statistics.fmean(float(r[col]) for r in rows if lo < float(r["env_steps"]) <= hi)
 
 
-def hit(rows: list[dict[str, str]], threshold: float) -> dict | None:
-    """bench_learning's first epoch whose trailing mean of 3 reaches ``threshold``."""
-    import bench_learning
-
-    return (bench_learning.first_hit(rows, threshold, 3) or {}).get("window")
 
 
 @dataclass(frozen=True)
@@ -358,8 +420,8 @@ def _paced_minutes() -> list[float]:
     return [n / _idle_pace() for n in steps]
 
 
-def _her_hits() -> list[dict | None]:
-    return [hit(rows, 0.9) for rows in setting("bc/push/her").runs.values()]
+def _her_hits() -> list[float | None]:
+    return [first_hit(rows, 0.9, 3) for rows in setting("bc/push/her").runs.values()]
 
 
 add("card:best", CARD, "design card: best 10-episode test success (a rate)",
@@ -374,7 +436,7 @@ add("card:final", CARD, "design card: mean of the last 3 epochs' test success (r
 add("card:last10", CARD, "design card: mean of the last 10 epochs' test success (a rate)",
     lambda: statistics.fmean(success(_card())[-10:]))
 add("card:wall", CARD, "design card: the run's wall clock (wall_time of the last epoch)",
-    lambda: minutes_seconds(float(_card()[-1]["wall_time"])))
+    lambda: Duration(float(_card()[-1]["wall_time"])))
 
 for _lo, _hi, _key in ((0, 100_000, "w1"), (100_000, 200_000, "w2"), (200_000, 250_000, "w3")):
     add(f"pushm3:{_key}", PUSHM3, f"FetchPushMoving, DHER at a 0.2 share, seed 3: mean test "
@@ -391,7 +453,7 @@ add("pushm3:combined:min", PUSHM3, "the same run: lowest share of combined rows 
 add("pushm3:combined:max", PUSHM3, "the same run: highest share of combined rows, %",
     lambda: 100 * max(float(r["frac_dher"]) for r in _pushm3()))
 add("pushm3:wall", PUSHM3, "the same run: its wall clock (wall_time of the last epoch)",
-    lambda: minutes_seconds(float(_pushm3()[-1]["wall_time"])))
+    lambda: Duration(float(_pushm3()[-1]["wall_time"])))
 
 add("bp/push/*:wall_min:min", "benchmark/paper/FetchPush", "Push at the paper's budget: the "
     "fewest minutes per run of any algorithm (run_info.json, wall_clock_per_run_s)",
@@ -446,28 +508,9 @@ for _seed in range(3):
         functools.partial(lambda k: same_epochs(PUSH_PAIRS, k), _seed))
 
 
-def _window(ref: str, k: int, stat: str) -> float:
-    st = report.windows(setting(ref))[k][1]
-    return 100 * (st.mean if stat == "mean" else st.std)
-
-
-for _task, _names in (("pushm", ("her", "dher", "dher_plain", "dher_f0.2")),
-                      ("reachm", ("her", "dher", "dher_plain", "dher_f0.2", "rdher",
-                                  "rdher_f0.2"))):
-    for _name in _names:
-        for _k in range(len(report.WINDOWS)):
-            for _st in ("mean", "sd"):
-                _ref = f"mc/{_task}/{_name}"
-                add(f"{_ref}:w{_k + 1}" + (":sd" if _st == "sd" else ""),
-                    f"moving/cpu/{TASKS[_task]}/{_name}", f"{_ref}: mean test success over "
-                    f"env-step window {_k + 1} of {len(report.WINDOWS)} (summary.md's), "
-                    f"{_st} over seeds, %", functools.partial(_window, _ref, _k, _st))
-
-
 def _paper_s(ref: str) -> float:
     """The paper's Table 3 wall clock of one run for ``ref``'s task and algorithm, in seconds."""
-    h, m, sec = report.paper_time(setting(ref).task, run_info(ref).get("algo")).split(":")
-    return 3600 * int(h) + 60 * int(m) + int(sec)
+    return _table3_s(setting(ref).task, run_info(ref).get("algo"))
 
 
 REACH_TABLE3 = ["bp/reach/ddpg", "bp/reach/her", "bp/reach/rdher"]
@@ -579,9 +622,9 @@ for _abbr, _task in TASKS.items():
 
 add("bc/push/her:to_0.9:min", "benchmark/cpu/FetchPush/her", "preset=fast HER on Push: the "
     "fewest env steps of a seed to a trailing mean of 3 epochs of 0.9 (bench_learning's rule)",
-    lambda: min(h["env_steps"] for h in _her_hits() if h))
+    lambda: min(h for h in _her_hits() if h))
 add("bc/push/her:to_0.9:max", "benchmark/cpu/FetchPush/her", "the same: the most",
-    lambda: max(h["env_steps"] for h in _her_hits() if h))
+    lambda: max(h for h in _her_hits() if h))
 add("bc/push/her:to_0.9:n", "benchmark/cpu/FetchPush/her", "the same: seeds that get there",
     lambda: sum(h is not None for h in _her_hits()))
 add("bc/push/her:to_0.9:never", "benchmark/cpu/FetchPush/her", "the same: the seeds that never "
@@ -610,6 +653,8 @@ def source(name: str) -> Path:
     setting's directory, for a glob its task's, for a named figure its own ``source``."""
     if name in NAMED:
         return RESULTS / NAMED[name].source
+    if name.startswith("paper/"):
+        return ROOT / "rdher_jax" / "tasks.py"
     ref = name.split(":")[0].split("-")[0]
     if any(c in ref for c in "*?["):
         kind, task, _ = ref.split("/")
@@ -631,7 +676,7 @@ def value(name: str) -> float | str:
 # ------------------------------------------------------------------ the markdown
 
 MARK = re.compile(r'\[([^\[\]]*)\]\(([^()\s]*) "q:([^"]+)"\)')
-NUMBER = re.compile(r"[+\u2212-]?\d[\d,]*(?:\.\d+)?(?:e[+-]?\d+)?")
+NUMBER = re.compile(r"[+\u2212-]?\d[\d,]*(?:\.\d+)?(?:e[+-]?\d+)?k?")
 
 
 @dataclass(frozen=True)
@@ -645,9 +690,16 @@ class Quote:
     end: int
 
 
+# A link in code (a span may go on over a line break, not over a paragraph) is an example.
+CODE = re.compile(r"```.*?```|`(?:[^`\n]|\n(?!\n))+`", re.DOTALL)
+
+
 def quotes(path: Path) -> Iterator[Quote]:
     src = path.read_text(encoding="utf-8")
+    code = [m.span() for m in CODE.finditer(src)]
     for m in MARK.finditer(src):
+        if any(a <= m.start() < b for a, b in code):
+            continue
         yield Quote(path, src.count("\n", 0, m.start()) + 1, m.group(1), m.group(2),
                     m.group(3), m.start(1), m.end(1))
 
@@ -657,6 +709,10 @@ def render(val: float | str, like: str) -> str:
     significant digits, thousands commas, a leading + on a signed figure, − or - for minus)."""
     if isinstance(val, str):
         return val
+    if isinstance(val, Duration):
+        return clock(val, like)
+    if like.endswith("k"):  # in thousands
+        return render(val / 1000, like[:-1]) + "k"
     body = like.lstrip("+\u2212-")
     if "e" in body:
         digits = len(body.split("e")[0].replace(".", "").lstrip("0"))
@@ -691,8 +747,8 @@ def problem(q: Quote, root: Path = ROOT) -> str | None:
     if target != src.resolve():
         return (f"{where}: {q.name}: the link goes to {q.target}, not to the data the figure "
                 f"comes from ({src.relative_to(ROOT)})")
-    if isinstance(val, str):
-        ok = q.text == val
+    if isinstance(val, str | Duration):
+        ok = render(val, q.text) == q.text
     else:
         if not NUMBER.fullmatch(q.text):
             return f"{where}: {q.name}: the text {q.text!r} is not a number"
