@@ -65,6 +65,7 @@ import statistics
 import sys
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from decimal import ROUND_HALF_UP, Decimal
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
@@ -720,7 +721,9 @@ def render(val: float | str, like: str) -> str:
         out = f"{mant}e{int(exp):+03d}"
     else:
         places = len(body.split(".")[1]) if "." in body else 0
-        out = f"{round(val, places) + 0.0:{',' if ',' in body else ''}.{places}f}"
+        # Halves round up, as a reader rounds 112,500 to 113k (float round() goes to even).
+        half_up = Decimal(repr(float(val))).quantize(Decimal(1).scaleb(-places), ROUND_HALF_UP)
+        out = f"{float(half_up) + 0.0:{',' if ',' in body else ''}.{places}f}"
         if float(out.replace(",", "")) == 0:
             out = out.lstrip("-")  # a tie reads 0.0 or +0.0, never -0.0
     if out.startswith("-"):
