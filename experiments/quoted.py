@@ -24,21 +24,28 @@ rdher``. A *measure* is one of report.py's per-seed figures (:func:`report.per_s
 all epochs), ``policy`` (the best policy retested); all in %. Also ``combined`` (the share of
 DHER-combined rows in a batch, the CSVs' ``frac_dher``, mean of the last 3 epochs, %),
 ``combined_run`` (the same over every epoch) and the bias columns (``bias_real``,
-``bias_unw_her``, ...: mean of the last 3 epochs, as summary.md's diagnostic).
+``bias_unw_her``, ...: mean of the last 3 epochs, as summary.md's diagnostic). Also ``w1``,
+``w2``, ``w3``: the mean test success over summary.md's env-step windows (report.windows: the
+first 40%, the next 40%, the last 20% of the steps), %; ``to0.5``: the env steps to the first
+test at 0.5 or above, ``to0.9m3`` to the first trailing mean of 3 tests at 0.9 (bench_learning's
+rule; a seed that never gets there counts its last env steps, a lower bound).
 
 - ``S:M`` the mean over seeds of measure M of setting S; ``S:M:sd`` its sample std, ``S:M:lo``
   / ``S:M:hi`` its 95% t interval clipped to [0, 100] (as summary.md prints it), ``S:M:n`` the
   seeds, ``S:M:s2`` seed 2's value, ``S:M:min`` / ``S:M:max`` the lowest / highest seed's,
-  ``S:M:ge50`` the number of seeds at 50 or above.
+  ``S:M:ge50`` / ``S:M:lt500000`` the number of seeds at 50 or above / below 500,000.
 - ``S-T:M`` the mean of S minus the mean of T (Welch), ``S-T:M:p`` Welch's two-sided p;
   ``S-T:M:paired`` and ``S-T:M:paired:p`` the same paired by seed (:func:`report.paired`);
-  ``S-T:M:paired:lo`` / ``:hi`` the 95% t interval of the mean per-seed difference;
+  ``S-T:M:paired:lo`` / ``:hi`` the 95% t interval of the mean per-seed difference,
+  ``S-T:M:paired:sd`` the per-seed differences' std; ``S-T:M:seeds80`` (``:paired:seeds80``)
+  the seeds per setting a two-sided t-test (paired t-test) at 5% needs to detect the
+  difference with 80% power, at the spreads seen (:func:`seeds_for_power`);
   ``S-T:M:wins`` the seeds on which S is above T, ``S-T:M:common`` the seeds both hold. T is
   a setting, or a setting name alone for one of S's task (``bp/slide/rdher-her``).
-- ``S:w1``, ``S:w2``, ``S:w3`` (``:sd``) the mean test success over summary.md's env-step
-  windows (report.windows: the first 40%, the next 40%, the last 20% of the steps), %.
-- ``S:wall`` the wall clock per run of S (``run_info.json``, ``wall_clock_per_run_s``) as
-  ``33 min 16 s``, ``S:wall_mmss`` as ``33:16``; ``S:wall_min`` the same in minutes (over a
+- ``S:wall`` the wall clock per run of S (``run_info.json``, ``wall_clock_per_run_s``), written
+  as its text is (``33 min 16 s``, ``33:16``, ``1:45:13``, ``1 h 45 min 13 s``: :func:`clock`);
+  ``S:piece_wall:0`` the wall clock of S's first piece (``S:piece_min:0`` its minutes per
+  run); ``S:wall_min`` the same in minutes (over a
   glob, ``:min`` or ``:max``); ``S-T:wall_ratio`` S's wall clock per run over T's;
   ``S:table3_ratio`` the paper's Table 3 time of one run over S's;
   ``S:piece_min:min`` / ``:max`` the fewest / most minutes per run of a one-seed piece of a
@@ -46,10 +53,13 @@ DHER-combined rows in a batch, the CSVs' ``frac_dher``, mean of the last 3 epoch
 - A setting may be a glob over setting names (``ap/pnp/rdher_*``); then ``:min`` or ``:max``
   at the end takes the lowest or highest of the settings' figures
   (``ap/pnp/rdher_*:policy:min``).
+- ``paper/<task>/<algo>:table2`` the paper's Table 2 figure (best-policy success, %),
+  ``:table3`` its Table 3 wall clock of one run, both from ``rdher_jax/tasks.py``.
 - Any other name is an entry of :data:`NAMED` below.
 
 Numbers are as report.py's tables print them (100 · rate, Welch and paired tests on the
 rounded rates), so a figure the prose takes from a summary.md table checks against the table.
+A figure in thousands is written ``295k``; halves round up.
 """
 
 from __future__ import annotations
@@ -205,18 +215,43 @@ def _versus(a: str, b: str, measure: str, test: list[str]) -> float:
         diff, p = report.welch(list(xs.values()), list(ys.values()))
     elif test in (["paired"], ["paired", "p"]):
         diff, p, _ = report.paired(xs, ys)
-    elif test in (["paired", "lo"], ["paired", "hi"]):
+    elif test in (["paired", "lo"], ["paired", "hi"], ["paired", "sd"], ["paired", "seeds80"]):
         common = sorted(set(xs) & set(ys))
         st = report.stat([report._rate(xs[k]) - report._rate(ys[k]) for k in common])
-        return scale * (st.lo if test[1] == "lo" else st.hi)
+        if test[1] == "seeds80":
+            return seeds_for_power(st.mean, st.std, None)
+        return scale * {"lo": st.lo, "hi": st.hi, "sd": st.std}[test[1]]
+    elif test == ["seeds80"]:
+        sx, sy = report.stat(list(xs.values())), report.stat(list(ys.values()))
+        return seeds_for_power(sx.mean - sy.mean, sx.std, sy.std)
     elif test in (["wins"], ["common"]):
         common = sorted(set(xs) & set(ys))
         return float(len(common) if test == ["common"] else
                      sum(report._rate(xs[k]) > report._rate(ys[k]) for k in common))
     else:
         raise KeyError(f"no test {':'.join(test)!r} (nothing, p, paired, paired:p, "
-                       "paired:lo, paired:hi, wins, common)")
+                       "paired:lo, paired:hi, paired:sd, paired:seeds80, seeds80, wins, common)")
     return p if test[-1:] == ["p"] else scale * diff
+
+
+def seeds_for_power(diff: float, sd_a: float, sd_b: float | None, power: float = 0.8,
+                    alpha: float = 0.05) -> float:
+    """The fewest seeds per setting for a two-sided t-test at ``alpha`` to detect ``diff`` with
+    ``power``, by the noncentral t: the two-sample test of two settings with sample stds ``sd_a``
+    and ``sd_b`` at n seeds each (2n - 2 degrees of freedom, as statsmodels' TTestIndPower), or
+    with ``sd_b`` None the paired test whose per-seed differences have std ``sd_a``."""
+    from scipy import stats as sps
+
+    for n in range(2, 10_000):
+        if sd_b is None:
+            se, df = sd_a / math.sqrt(n), n - 1
+        else:
+            se, df = math.sqrt((sd_a ** 2 + sd_b ** 2) / n), 2 * n - 2
+        crit = float(sps.t.ppf(1 - alpha / 2, df))
+        ncp = abs(diff) / se
+        if float(sps.nct.sf(crit, df, ncp) + sps.nct.cdf(-crit, df, ncp)) >= power:
+            return float(n)
+    return math.inf
 
 
 def _pieces(ref: str) -> list[float]:
@@ -251,11 +286,13 @@ def systematic(name: str) -> float | str:
         return paper(ref, measure, rest)
     if measure == "wall" and not rest and "-" not in ref:
         return Duration(per_run_s(ref))
-    if measure == "piece_wall" and len(rest) == 1 and rest[0].isdigit() and "-" not in ref:
+    if measure in ("piece_wall", "piece_min") and len(rest) == 1 and rest[0].isdigit() \
+            and "-" not in ref:
         pieces = run_info(ref).get("pieces") or []
         if int(rest[0]) >= len(pieces):
             raise KeyError(f"{ref} has no piece {rest[0]}")
-        return Duration(float(pieces[int(rest[0])]["wall_clock_s"]))
+        return Duration(float(pieces[int(rest[0])]["wall_clock_s"])) if measure == "piece_wall" \
+            else _pieces(ref)[int(rest[0])]
     if measure == "wall_ratio" and rest == [] and "-" in ref:
         a, b = ref.split("-", 1)
         return per_run_s(a) / per_run_s(b if "/" in b else a.rsplit("/", 1)[0] + "/" + b)
