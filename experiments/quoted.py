@@ -53,6 +53,7 @@ rule; a seed that never gets there counts its last env steps, a lower bound).
 - A setting may be a glob over setting names (``ap/pnp/rdher_*``); then ``:min`` or ``:max``
   at the end takes the lowest or highest of the settings' figures
   (``ap/pnp/rdher_*:policy:min``).
+- ``bl/<name>:<field>:s<seed>`` a figure of a ``bench_learning/<name>.json`` run (:func:`learning`).
 - ``paper/<task>/<algo>:table2`` the paper's Table 2 figure (best-policy success, %),
   ``:table3`` its Table 3 wall clock of one run, both from ``rdher_jax/tasks.py``.
 - Any other name is an entry of :data:`NAMED` below.
@@ -284,6 +285,8 @@ def systematic(name: str) -> float | str:
     ref, measure, rest = parts[0], parts[1], parts[2:]
     if ref.startswith("paper/"):
         return paper(ref, measure, rest)
+    if ref.startswith("bl/"):
+        return learning(ref[3:], measure, rest)
     if measure == "wall" and not rest and "-" not in ref:
         return Duration(per_run_s(ref))
     if measure in ("piece_wall", "piece_min") and len(rest) == 1 and rest[0].isdigit() \
@@ -346,6 +349,38 @@ def paper(ref: str, measure: str, rest: list[str]) -> float:
             raise KeyError(f"the paper's Table 2 has no {task} {algo}")
         return float(val)
     return Duration(_table3_s(task, algo))
+
+
+RETESTS = "bench_learning/solve-baseline-retests.md"
+
+
+def learning(name: str, field: str, rest: list[str]) -> float | str:
+    """``bl/<name>:<field>:s<seed>``: a figure of ``bench_learning/<name>.json``'s run of that
+    seed: ``best`` (a rate), ``env_steps``, ``minutes``, ``to0.5`` / ``to0.9`` (env steps to the
+    first test there), ``to0.5m3`` / ``to0.9m3`` (to the first trailing mean of 3 there; the
+    text ``not reached`` where none is); ``retest`` the best policy's 100-episode retest, %,
+    from :data:`RETESTS`."""
+    if len(rest) != 1 or not re.fullmatch(r"s\d+", rest[0]):
+        raise KeyError(f"bl/{name}:{field}: the seed goes last (:s0)")
+    seed = rest[0][1:]
+    if field == "retest":
+        text = (RESULTS / RETESTS).read_text(encoding="utf-8")
+        m = re.search(rf"^{re.escape(name)}-s{seed}: .* test success ([\d.]+) over", text, re.M)
+        if not m:
+            raise KeyError(f"{RETESTS} has no retest of {name}-s{seed}")
+        return 100 * float(m[1])
+    run = _bl(name)["results"].get(seed)
+    if run is None:
+        raise KeyError(f"bench_learning/{name}.json has no seed {seed}")
+    if field in ("best", "env_steps"):
+        return float(run[field])
+    if field == "minutes":
+        return float(run["wall_s"]) / 60
+    if m := HIT.fullmatch(field):
+        got = (run["hits"].get(m[1]) or {}).get("window" if m[2] else "single")
+        return "not reached" if got is None else float(got["env_steps"])
+    raise KeyError(f"no bench_learning figure {field!r} (best, env_steps, minutes, to<x>, "
+                   "to<x>m3, retest)")
 
 
 def _table3_s(task: str, algo: str | None) -> float:
@@ -684,13 +719,6 @@ add("bl/push-fast:paced_min:min", "bench_learning", "preset=fast on Push, seeds 
 add("bl/push-fast:paced_min:max", "bench_learning", "the same: the most",
     lambda: max(_paced_minutes()))
 
-add("bl/pnp-fast:to_0.5", "bench_learning/pnp-fast.json", "preset=fast on PickAndPlace, seed 0: "
-    "env steps to its first test of 0.5", lambda: float(
-        _bl("pnp-fast")["results"]["0"]["hits"]["0.5"]["single"]["env_steps"]))
-add("bl/pnp-fast:best", "bench_learning/pnp-fast.json", "the same run: its best test success "
-    "(a rate)", lambda: _bl("pnp-fast")["results"]["0"]["best"])
-add("bl/pnp-fast:steps", "bench_learning/pnp-fast.json", "the same run: its env steps",
-    lambda: float(_bl("pnp-fast")["results"]["0"]["env_steps"]))
 
 def source(name: str) -> Path:
     """The committed file or directory figure ``name`` comes from (what its link must name): a
@@ -699,6 +727,9 @@ def source(name: str) -> Path:
         return RESULTS / NAMED[name].source
     if name.startswith("paper/"):
         return RESULTS / TASKS_PY
+    if name.startswith("bl/"):
+        bl, field = name[3:].split(":")[:2]
+        return RESULTS / (RETESTS if field == "retest" else f"bench_learning/{bl}.json")
     ref = name.split(":")[0].split("-")[0]
     if any(c in ref for c in "*?["):
         kind, task, _ = ref.split("/")
