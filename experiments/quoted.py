@@ -358,8 +358,9 @@ def learning(name: str, field: str, rest: list[str]) -> float | str:
     """``bl/<name>:<field>:s<seed>``: a figure of ``bench_learning/<name>.json``'s run of that
     seed: ``best`` (a rate), ``env_steps``, ``minutes``, ``to0.5`` / ``to0.9`` (env steps to the
     first test there), ``to0.5m3`` / ``to0.9m3`` (to the first trailing mean of 3 there; the
-    text ``not reached`` where none is); ``retest`` the best policy's 100-episode retest, %,
-    from :data:`RETESTS`."""
+    text ``not reached`` where none is), ``to0.5_min``, ``to0.9m3_min``, ...: the same in
+    minutes of training; ``retest`` the best policy's 100-episode retest, %, from
+    :data:`RETESTS`."""
     if len(rest) != 1 or not re.fullmatch(r"s\d+", rest[0]):
         raise KeyError(f"bl/{name}:{field}: the seed goes last (:s0)")
     seed = rest[0][1:]
@@ -376,11 +377,12 @@ def learning(name: str, field: str, rest: list[str]) -> float | str:
         return float(run[field])
     if field == "minutes":
         return float(run["wall_s"]) / 60
-    if m := HIT.fullmatch(field):
+    if m := re.fullmatch(HIT.pattern + "(_min)?", field):
         got = (run["hits"].get(m[1]) or {}).get("window" if m[2] else "single")
-        return "not reached" if got is None else float(got["env_steps"])
+        return "not reached" if got is None else \
+            float(got["wall_s"]) / 60 if m[3] else float(got["env_steps"])
     raise KeyError(f"no bench_learning figure {field!r} (best, env_steps, minutes, to<x>, "
-                   "to<x>m3, retest)")
+                   "to<x>m3, to<x>_min, to<x>m3_min, retest)")
 
 
 def _table3_s(task: str, algo: str | None) -> float:
