@@ -671,6 +671,16 @@ add("bl/push-fast:to_0.9:max", "bench_learning/push-fast.json", "preset=fast on 
                 for r in _bl("push-fast")["results"].values()))
 
 
+def _cycle(setting: str, key: str) -> float:
+    rows = json.loads((RESULTS / "bench_cycle.json").read_text(encoding="utf-8"))
+    return float(next(r for r in rows if r["setting"] == setting)[key])
+
+
+for _set in ("default", "fast"):
+    add(f"cycle/{_set}:update_ms", "bench_cycle.json", f"bench_cycle.md, FetchPush, {_set}: one "
+        "sampled gradient step, ms", functools.partial(_cycle, _set, "update_ms"))
+
+
 SLIDE_COMBINED = ["yp/slide/rdher", "yp/slide/rdher_clip", "bp/slide/dher"]
 for _f in (min, max):
     add(f"yp/slide/rdher+rdher_clip+dher:combined_run:{_f.__name__}", "beyond/paper/FetchSlide",
