@@ -4,17 +4,19 @@
     python experiments/quoted.py --write    # rewrite every checked figure from the data
     python experiments/quoted.py --list     # the named figures of the table below
 
-In ``experiments/results/RESULTS.md``, ``README.md`` and every ``experiments/results/**/README.md``
-a checked figure is a markdown link whose title starts with ``q:`` and names the figure; the
-link goes to the committed data it comes from (relative to the markdown file, as any link):
+In ``experiments/results/RESULTS.md``, ``README.md``, every ``experiments/results/**/README.md``
+and ``docs/*.md``, prose and tables alike, a checked figure is a markdown link whose title starts
+with ``q:`` and names the figure; the link goes to the committed data it comes from (relative to
+the markdown file, as any link; a link inside code is an example, not a figure):
 
     [91.7](../benchmark/cpu/FetchPush/her "q:bc/push/her:final")
 
 A figure not written so is hand-typed, and nothing checks it. The text of a numeric figure is
 compared at its own precision (``92`` quotes 91.67 correctly, ``91.6`` does not; a p of
 ``0.032`` is 0.0317 to three decimals; ``1.5e-07`` to two significant digits); a text figure
-(a wall clock such as ``33 min 16 s``) must match exactly, and the link must lead to the data the
-figure comes from (:func:`source`). ``tests/test_quoted.py`` runs the check.
+(``not reached``) must match exactly, a wall clock in the style of its text (``33 min 16 s``,
+``33:16``, ``1:45:13``), and the link must lead to the data the figure comes from
+(:func:`source`). ``tests/test_quoted.py`` runs the check.
 
 Names. A *setting* is ``<kind>/<task>/<setting>`` with the kind and profile abbreviated
 (:data:`KINDS`: ``bp`` = ``benchmark/paper``, ...) and the task too (:data:`TASKS`: ``push`` =
