@@ -4,17 +4,19 @@
     python experiments/quoted.py --write    # rewrite every checked figure from the data
     python experiments/quoted.py --list     # the named figures of the table below
 
-In ``experiments/results/RESULTS.md``, ``README.md`` and every ``experiments/results/**/README.md``
-a checked figure is a markdown link whose title starts with ``q:`` and names the figure; the
-link goes to the committed data it comes from (relative to the markdown file, as any link):
+In ``experiments/results/RESULTS.md``, ``README.md``, every ``experiments/results/**/README.md``
+and ``docs/*.md``, prose and tables alike, a checked figure is a markdown link whose title starts
+with ``q:`` and names the figure; the link goes to the committed data it comes from (relative to
+the markdown file, as any link; a link inside code is an example, not a figure):
 
     [91.7](../benchmark/cpu/FetchPush/her "q:bc/push/her:final")
 
 A figure not written so is hand-typed, and nothing checks it. The text of a numeric figure is
 compared at its own precision (``92`` quotes 91.67 correctly, ``91.6`` does not; a p of
 ``0.032`` is 0.0317 to three decimals; ``1.5e-07`` to two significant digits); a text figure
-(a wall clock such as ``33 min 16 s``) must match exactly, and the link must lead to the data the
-figure comes from (:func:`source`). ``tests/test_quoted.py`` runs the check.
+(``not reached``) must match exactly, a wall clock in the style of its text (``33 min 16 s``,
+``33:16``, ``1:45:13``), and the link must lead to the data the figure comes from
+(:func:`source`). ``tests/test_quoted.py`` runs the check.
 
 Names. A *setting* is ``<kind>/<task>/<setting>`` with the kind and profile abbreviated
 (:data:`KINDS`: ``bp`` = ``benchmark/paper``, ...) and the task too (:data:`TASKS`: ``push`` =
@@ -24,21 +26,28 @@ rdher``. A *measure* is one of report.py's per-seed figures (:func:`report.per_s
 all epochs), ``policy`` (the best policy retested); all in %. Also ``combined`` (the share of
 DHER-combined rows in a batch, the CSVs' ``frac_dher``, mean of the last 3 epochs, %),
 ``combined_run`` (the same over every epoch) and the bias columns (``bias_real``,
-``bias_unw_her``, ...: mean of the last 3 epochs, as summary.md's diagnostic).
+``bias_unw_her``, ...: mean of the last 3 epochs, as summary.md's diagnostic). Also ``w1``,
+``w2``, ``w3``: the mean test success over summary.md's env-step windows (report.windows: the
+first 40%, the next 40%, the last 20% of the steps), %; ``to0.5``: the env steps to the first
+test at 0.5 or above, ``to0.9m3`` to the first trailing mean of 3 tests at 0.9 (bench_learning's
+rule; a seed that never gets there counts its last env steps, a lower bound).
 
 - ``S:M`` the mean over seeds of measure M of setting S; ``S:M:sd`` its sample std, ``S:M:lo``
   / ``S:M:hi`` its 95% t interval clipped to [0, 100] (as summary.md prints it), ``S:M:n`` the
   seeds, ``S:M:s2`` seed 2's value, ``S:M:min`` / ``S:M:max`` the lowest / highest seed's,
-  ``S:M:ge50`` the number of seeds at 50 or above.
+  ``S:M:ge50`` / ``S:M:lt500000`` the number of seeds at 50 or above / below 500,000.
 - ``S-T:M`` the mean of S minus the mean of T (Welch), ``S-T:M:p`` Welch's two-sided p;
   ``S-T:M:paired`` and ``S-T:M:paired:p`` the same paired by seed (:func:`report.paired`);
-  ``S-T:M:paired:lo`` / ``:hi`` the 95% t interval of the mean per-seed difference;
+  ``S-T:M:paired:lo`` / ``:hi`` the 95% t interval of the mean per-seed difference,
+  ``S-T:M:paired:sd`` the per-seed differences' std; ``S-T:M:seeds80`` (``:paired:seeds80``)
+  the seeds per setting a two-sided t-test (paired t-test) at 5% needs to detect the
+  difference with 80% power, at the spreads seen (:func:`seeds_for_power`);
   ``S-T:M:wins`` the seeds on which S is above T, ``S-T:M:common`` the seeds both hold. T is
   a setting, or a setting name alone for one of S's task (``bp/slide/rdher-her``).
-- ``S:w1``, ``S:w2``, ``S:w3`` (``:sd``) the mean test success over summary.md's env-step
-  windows (report.windows: the first 40%, the next 40%, the last 20% of the steps), %.
-- ``S:wall`` the wall clock per run of S (``run_info.json``, ``wall_clock_per_run_s``) as
-  ``33 min 16 s``, ``S:wall_mmss`` as ``33:16``; ``S:wall_min`` the same in minutes (over a
+- ``S:wall`` the wall clock per run of S (``run_info.json``, ``wall_clock_per_run_s``), written
+  as its text is (``33 min 16 s``, ``33:16``, ``1:45:13``, ``1 h 45 min 13 s``: :func:`clock`);
+  ``S:piece_wall:0`` the wall clock of S's first piece (``S:piece_min:0`` its minutes per
+  run); ``S:wall_min`` the same in minutes (over a
   glob, ``:min`` or ``:max``); ``S-T:wall_ratio`` S's wall clock per run over T's;
   ``S:table3_ratio`` the paper's Table 3 time of one run over S's;
   ``S:piece_min:min`` / ``:max`` the fewest / most minutes per run of a one-seed piece of a
@@ -46,10 +55,14 @@ DHER-combined rows in a batch, the CSVs' ``frac_dher``, mean of the last 3 epoch
 - A setting may be a glob over setting names (``ap/pnp/rdher_*``); then ``:min`` or ``:max``
   at the end takes the lowest or highest of the settings' figures
   (``ap/pnp/rdher_*:policy:min``).
+- ``bl/<name>:<field>:s<seed>`` a figure of a ``bench_learning/<name>.json`` run (:func:`learning`).
+- ``paper/<task>/<algo>:table2`` the paper's Table 2 figure (best-policy success, %),
+  ``:table3`` its Table 3 wall clock of one run, both from ``rdher_jax/tasks.py``.
 - Any other name is an entry of :data:`NAMED` below.
 
 Numbers are as report.py's tables print them (100 · rate, Welch and paired tests on the
 rounded rates), so a figure the prose takes from a summary.md table checks against the table.
+A figure in thousands is written ``295k``; halves round up.
 """
 
 from __future__ import annotations
@@ -65,6 +78,7 @@ import statistics
 import sys
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from decimal import ROUND_HALF_UP, Decimal
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
@@ -84,7 +98,8 @@ MEASURES = ("best", "final", "mean", "policy")
 def markdown_files(root: Path = ROOT) -> list[Path]:
     """The files whose prose may quote checked figures."""
     res = root / "experiments" / "results"
-    return [root / "README.md", res / "RESULTS.md", *sorted(res.glob("**/README.md"))]
+    return [root / "README.md", res / "RESULTS.md", *sorted(res.glob("**/README.md")),
+            *sorted((root / "docs").glob("*.md"))]
 
 
 # ------------------------------------------------------------------ the data
@@ -111,6 +126,23 @@ def run_info(ref: str) -> dict:
 
 
 COLUMN_MEASURES = ("combined", "combined_run", *report.BIAS_COLS)
+HIT = re.compile(r"to(\d*\.?\d+)(m3)?")  # to0.5: first test at 0.5; to0.9m3: trailing mean of 3
+
+
+def percent(measure: str) -> bool:
+    """Whether ``measure`` is a rate the prose quotes in % (not env steps, not a bias)."""
+    return measure in MEASURES or measure.startswith("combined") or bool(
+        re.fullmatch(r"w\d", measure))
+
+
+def first_hit(rows: list[dict[str, str]], threshold: float, window: int = 1) -> float | None:
+    """bench_learning's rule: env steps of the first epoch whose test success (``window`` = 1)
+    or trailing mean of ``window`` epochs reaches ``threshold``; None if none does."""
+    import bench_learning
+
+    got = bench_learning.first_hit(rows, threshold, window) or {}
+    return float(got[key]["env_steps"]) if (key := "single" if window == 1 else "window") in got \
+        else None
 
 
 def seeds(ref: str, measure: str) -> dict[int, float]:
@@ -118,11 +150,23 @@ def seeds(ref: str, measure: str) -> dict[int, float]:
     rates in % (``best``, ``final``, ``mean``, ``policy``); ``combined``, the share of DHER-
     combined rows in a batch (``frac_dher``), mean of the last 3 epochs, in %, and
     ``combined_run`` the same over every epoch; a bias column (``bias_real``, ...), mean of its
-    finite values over the last 3 epochs, as summary.md's diagnostic."""
+    finite values over the last 3 epochs, as summary.md's diagnostic; ``w1``-``w3`` the mean
+    test success over summary.md's env-step windows, in %; ``to<x>`` the env steps to the first
+    test at ``x`` or above, ``to<x>m3`` to the first trailing mean of 3 tests there (a seed that
+    never gets there counts its last env steps, a lower bound)."""
+    if m := re.fullmatch(r"w(\d)", measure):
+        ws = report.window_seeds(setting(ref))
+        if not 1 <= int(m[1]) <= len(ws):
+            raise KeyError(f"windows are w1-w{len(ws)}")
+        return {k: 100 * v for k, v in ws[int(m[1]) - 1][1].items()}
+    if m := HIT.fullmatch(measure):
+        return {k: first_hit(rows, float(m[1]), 3 if m[2] else 1) or float(rows[-1]["env_steps"])
+                for k, rows in setting(ref).runs.items()}
     if measure in MEASURES:
         return {k: 100 * v for k, v in report.per_seed(setting(ref))[measure].items()}
     if measure not in COLUMN_MEASURES:
-        raise KeyError(f"no measure {measure!r} (one of {', '.join(MEASURES + COLUMN_MEASURES)})")
+        raise KeyError(f"no measure {measure!r} (one of {', '.join(MEASURES + COLUMN_MEASURES)}, "
+                       "w<k>, to<x>, to<x>m3)")
     col = "frac_dher" if measure.startswith("combined") else measure
     scale = 100 if col == "frac_dher" else 1
     last = None if measure == "combined_run" else report.LAST
@@ -155,34 +199,62 @@ def _over_seeds(ref: str, measure: str, stat: str) -> float:
         return max(xs.values())
     if re.fullmatch(r"ge\d+", stat):
         return sum(x >= int(stat[2:]) - 1e-4 for x in xs.values())
+    if re.fullmatch(r"lt\d+", stat):
+        return sum(x < int(stat[2:]) - 1e-4 for x in xs.values())
     if re.fullmatch(r"s\d+", stat):
         if int(stat[1:]) not in xs:
             raise KeyError(f"{ref} has no seed {stat[1:]}")
         return xs[int(stat[1:])]
-    raise KeyError(f"no statistic {stat!r} (mean, sd, lo, hi, n, min, max, s<seed>, ge<x>)")
+    raise KeyError(f"no statistic {stat!r} (mean, sd, lo, hi, n, min, max, s<seed>, ge<x>, "
+                   "lt<x>)")
 
 
 def _versus(a: str, b: str, measure: str, test: list[str]) -> float:
     """As report.py tests two settings: on the rates (rounded as report.welch rounds them)."""
-    scale = 1 if measure in report.BIAS_COLS else 100
+    scale = 100 if percent(measure) else 1
     xs = {k: v / scale for k, v in seeds(a, measure).items()}
     ys = {k: v / scale for k, v in seeds(b, measure).items()}
     if test in ([], ["p"]):
         diff, p = report.welch(list(xs.values()), list(ys.values()))
     elif test in (["paired"], ["paired", "p"]):
         diff, p, _ = report.paired(xs, ys)
-    elif test in (["paired", "lo"], ["paired", "hi"]):
+    elif test in (["paired", "lo"], ["paired", "hi"], ["paired", "sd"], ["paired", "seeds80"]):
         common = sorted(set(xs) & set(ys))
         st = report.stat([report._rate(xs[k]) - report._rate(ys[k]) for k in common])
-        return scale * (st.lo if test[1] == "lo" else st.hi)
+        if test[1] == "seeds80":
+            return seeds_for_power(st.mean, st.std, None)
+        return scale * {"lo": st.lo, "hi": st.hi, "sd": st.std}[test[1]]
+    elif test == ["seeds80"]:
+        sx, sy = report.stat(list(xs.values())), report.stat(list(ys.values()))
+        return seeds_for_power(sx.mean - sy.mean, sx.std, sy.std)
     elif test in (["wins"], ["common"]):
         common = sorted(set(xs) & set(ys))
         return float(len(common) if test == ["common"] else
                      sum(report._rate(xs[k]) > report._rate(ys[k]) for k in common))
     else:
         raise KeyError(f"no test {':'.join(test)!r} (nothing, p, paired, paired:p, "
-                       "paired:lo, paired:hi, wins, common)")
+                       "paired:lo, paired:hi, paired:sd, paired:seeds80, seeds80, wins, common)")
     return p if test[-1:] == ["p"] else scale * diff
+
+
+def seeds_for_power(diff: float, sd_a: float, sd_b: float | None, power: float = 0.8,
+                    alpha: float = 0.05) -> float:
+    """The fewest seeds per setting for a two-sided t-test at ``alpha`` to detect ``diff`` with
+    ``power``, by the noncentral t: the two-sample test of two settings with sample stds ``sd_a``
+    and ``sd_b`` at n seeds each (2n - 2 degrees of freedom, as statsmodels' TTestIndPower), or
+    with ``sd_b`` None the paired test whose per-seed differences have std ``sd_a``."""
+    from scipy import stats as sps
+
+    for n in range(2, 10_000):
+        if sd_b is None:
+            se, df = sd_a / math.sqrt(n), n - 1
+        else:
+            se, df = math.sqrt((sd_a ** 2 + sd_b ** 2) / n), 2 * n - 2
+        crit = float(sps.t.ppf(1 - alpha / 2, df))
+        ncp = abs(diff) / se
+        if float(sps.nct.sf(crit, df, ncp) + sps.nct.cdf(-crit, df, ncp)) >= power:
+            return float(n)
+    return math.inf
 
 
 def _pieces(ref: str) -> list[float]:
@@ -213,17 +285,19 @@ def systematic(name: str) -> float | str:
     if len(parts) < 2:
         raise KeyError(f"unknown figure {name!r}")
     ref, measure, rest = parts[0], parts[1], parts[2:]
-    if re.fullmatch(r"w\d", measure) and "-" not in ref and rest in ([], ["sd"]):
-        k = int(measure[1:]) - 1
-        if not 0 <= k < len(report.WINDOWS):
-            raise KeyError(f"{name!r}: windows are w1-w{len(report.WINDOWS)}")
-        st = report.windows(setting(ref))[k][1]
-        return 100 * (st.std if rest else st.mean)
+    if ref.startswith("paper/"):
+        return paper(ref, measure, rest)
+    if ref.startswith("bl/"):
+        return learning(ref[3:], measure, rest)
     if measure == "wall" and not rest and "-" not in ref:
-        return minutes_seconds(per_run_s(ref))
-    if measure == "wall_mmss" and not rest and "-" not in ref:
-        sec = int(round(per_run_s(ref)))
-        return f"{sec // 60}:{sec % 60:02d}"
+        return Duration(per_run_s(ref))
+    if measure in ("piece_wall", "piece_min") and len(rest) == 1 and rest[0].isdigit() \
+            and "-" not in ref:
+        pieces = run_info(ref).get("pieces") or []
+        if int(rest[0]) >= len(pieces):
+            raise KeyError(f"{ref} has no piece {rest[0]}")
+        return Duration(float(pieces[int(rest[0])]["wall_clock_s"])) if measure == "piece_wall" \
+            else _pieces(ref)[int(rest[0])]
     if measure == "wall_ratio" and rest == [] and "-" in ref:
         a, b = ref.split("-", 1)
         return per_run_s(a) / per_run_s(b if "/" in b else a.rsplit("/", 1)[0] + "/" + b)
@@ -263,12 +337,82 @@ def systematic(name: str) -> float | str:
     return min(vals) if over == "min" else max(vals) if over == "max" else vals[0]
 
 
-# ------------------------------------------------------------------ named figures
+def paper(ref: str, measure: str, rest: list[str]) -> float:
+    """``paper/<task>/<algo>:table2`` (the paper's best-policy success, %) or ``:table3`` (its
+    wall clock of one run), as ``rdher_jax/tasks.py`` holds them."""
+    parts = ref.split("/")
+    if len(parts) != 3 or parts[1] not in TASKS or measure not in ("table2", "table3") or rest:
+        raise KeyError(f"not a figure of the paper: {ref}:{measure} "
+                       f"(paper/<{'|'.join(TASKS)}>/<algo>:table2|table3)")
+    task, algo = TASKS[parts[1]], parts[2]
+    if measure == "table2":
+        val = report.paper_best(task, algo)
+        if val is None:
+            raise KeyError(f"the paper's Table 2 has no {task} {algo}")
+        return float(val)
+    return Duration(_table3_s(task, algo))
 
-def minutes_seconds(seconds: float) -> str:
-    """``2016.4`` -> ``'33 min 16 s'`` (rounded to the second; hours as minutes)."""
+
+RETESTS = "bench_learning/solve-baseline-retests.md"
+
+
+def learning(name: str, field: str, rest: list[str]) -> float | str:
+    """``bl/<name>:<field>:s<seed>``: a figure of ``bench_learning/<name>.json``'s run of that
+    seed: ``best`` (a rate), ``env_steps``, ``minutes``, ``to0.5`` / ``to0.9`` (env steps to the
+    first test there), ``to0.5m3`` / ``to0.9m3`` (to the first trailing mean of 3 there; the
+    text ``not reached`` where none is), ``to0.5_min``, ``to0.9m3_min``, ...: the same in
+    minutes of training; ``retest`` the best policy's 100-episode retest, %, from
+    :data:`RETESTS`."""
+    if len(rest) != 1 or not re.fullmatch(r"s\d+", rest[0]):
+        raise KeyError(f"bl/{name}:{field}: the seed goes last (:s0)")
+    seed = rest[0][1:]
+    if field == "retest":
+        text = (RESULTS / RETESTS).read_text(encoding="utf-8")
+        m = re.search(rf"^{re.escape(name)}-s{seed}: .* test success ([\d.]+) over", text, re.M)
+        if not m:
+            raise KeyError(f"{RETESTS} has no retest of {name}-s{seed}")
+        return 100 * float(m[1])
+    run = _bl(name)["results"].get(seed)
+    if run is None:
+        raise KeyError(f"bench_learning/{name}.json has no seed {seed}")
+    if field in ("best", "env_steps"):
+        return float(run[field])
+    if field == "minutes":
+        return float(run["wall_s"]) / 60
+    if m := re.fullmatch(HIT.pattern + "(_min)?", field):
+        got = (run["hits"].get(m[1]) or {}).get("window" if m[2] else "single")
+        return "not reached" if got is None else \
+            float(got["wall_s"]) / 60 if m[3] else float(got["env_steps"])
+    raise KeyError(f"no bench_learning figure {field!r} (best, env_steps, minutes, to<x>, "
+                   "to<x>m3, to<x>_min, to<x>m3_min, retest)")
+
+
+def _table3_s(task: str, algo: str | None) -> float:
+    """The paper's Table 3 wall clock of one run of ``algo`` on ``task``, in seconds."""
+    hms = report.paper_time(task, algo)
+    if hms == "-":
+        raise KeyError(f"the paper's Table 3 has no {task} {algo}")
+    h, m, sec = hms.split(":")
+    return 3600 * int(h) + 60 * int(m) + int(sec)
+
+
+class Duration(float):
+    """A wall clock in seconds, written in the style of the text that quotes it (:func:`clock`)."""
+
+
+def clock(seconds: float, like: str) -> str:
+    """``seconds`` to the second in the style of ``like``: ``1:45:13`` or ``33:16`` (as many
+    colons as ``like``), ``1 h 45 min 13 s`` (if ``like`` has hours) or ``105 min 13 s``."""
     s = int(round(seconds))
+    if ":" in like:
+        return f"{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}" if like.count(":") == 2 \
+            else f"{s // 60}:{s % 60:02d}"
+    if re.match(r"\d+ h ", like):
+        return f"{s // 3600} h {s % 3600 // 60} min {s % 60} s"
     return f"{s // 60} min {s % 60} s"
+
+
+# ------------------------------------------------------------------ named figures
 
 
 def per_run_s(ref: str) -> float:
@@ -299,11 +443,6 @@ def window_mean(rows: list[dict[str, str]], lo: float, hi: float, col: str = "te
     return statistics.fmean(float(r[col]) for r in rows if lo < float(r["env_steps"]) <= hi)
 
 
-def hit(rows: list[dict[str, str]], threshold: float) -> dict | None:
-    """bench_learning's first epoch whose trailing mean of 3 reaches ``threshold``."""
-    import bench_learning
-
-    return (bench_learning.first_hit(rows, threshold, 3) or {}).get("window")
 
 
 @dataclass(frozen=True)
@@ -322,6 +461,7 @@ def add(name: str, source: str, doc: str, fn: Callable[[], float | str]) -> None
     NAMED[name] = Named(fn, doc, source)
 
 
+TASKS_PY = "../../rdher_jax/tasks.py"  # the paper's figures (a source is under experiments/results)
 CARD = "design_card/FetchSlide"
 PUSHM3 = "moving_goals/pushmoving_fast"
 PUSH_FLOOR = ["bp/push/ddpg", "bp/push/dher", "bp/push/rdher", "bp/push/cher"]
@@ -358,8 +498,8 @@ def _paced_minutes() -> list[float]:
     return [n / _idle_pace() for n in steps]
 
 
-def _her_hits() -> list[dict | None]:
-    return [hit(rows, 0.9) for rows in setting("bc/push/her").runs.values()]
+def _her_hits() -> list[float | None]:
+    return [first_hit(rows, 0.9, 3) for rows in setting("bc/push/her").runs.values()]
 
 
 add("card:best", CARD, "design card: best 10-episode test success (a rate)",
@@ -374,7 +514,7 @@ add("card:final", CARD, "design card: mean of the last 3 epochs' test success (r
 add("card:last10", CARD, "design card: mean of the last 10 epochs' test success (a rate)",
     lambda: statistics.fmean(success(_card())[-10:]))
 add("card:wall", CARD, "design card: the run's wall clock (wall_time of the last epoch)",
-    lambda: minutes_seconds(float(_card()[-1]["wall_time"])))
+    lambda: Duration(float(_card()[-1]["wall_time"])))
 
 for _lo, _hi, _key in ((0, 100_000, "w1"), (100_000, 200_000, "w2"), (200_000, 250_000, "w3")):
     add(f"pushm3:{_key}", PUSHM3, f"FetchPushMoving, DHER at a 0.2 share, seed 3: mean test "
@@ -391,7 +531,7 @@ add("pushm3:combined:min", PUSHM3, "the same run: lowest share of combined rows 
 add("pushm3:combined:max", PUSHM3, "the same run: highest share of combined rows, %",
     lambda: 100 * max(float(r["frac_dher"]) for r in _pushm3()))
 add("pushm3:wall", PUSHM3, "the same run: its wall clock (wall_time of the last epoch)",
-    lambda: minutes_seconds(float(_pushm3()[-1]["wall_time"])))
+    lambda: Duration(float(_pushm3()[-1]["wall_time"])))
 
 add("bp/push/*:wall_min:min", "benchmark/paper/FetchPush", "Push at the paper's budget: the "
     "fewest minutes per run of any algorithm (run_info.json, wall_clock_per_run_s)",
@@ -446,28 +586,9 @@ for _seed in range(3):
         functools.partial(lambda k: same_epochs(PUSH_PAIRS, k), _seed))
 
 
-def _window(ref: str, k: int, stat: str) -> float:
-    st = report.windows(setting(ref))[k][1]
-    return 100 * (st.mean if stat == "mean" else st.std)
-
-
-for _task, _names in (("pushm", ("her", "dher", "dher_plain", "dher_f0.2")),
-                      ("reachm", ("her", "dher", "dher_plain", "dher_f0.2", "rdher",
-                                  "rdher_f0.2"))):
-    for _name in _names:
-        for _k in range(len(report.WINDOWS)):
-            for _st in ("mean", "sd"):
-                _ref = f"mc/{_task}/{_name}"
-                add(f"{_ref}:w{_k + 1}" + (":sd" if _st == "sd" else ""),
-                    f"moving/cpu/{TASKS[_task]}/{_name}", f"{_ref}: mean test success over "
-                    f"env-step window {_k + 1} of {len(report.WINDOWS)} (summary.md's), "
-                    f"{_st} over seeds, %", functools.partial(_window, _ref, _k, _st))
-
-
 def _paper_s(ref: str) -> float:
     """The paper's Table 3 wall clock of one run for ``ref``'s task and algorithm, in seconds."""
-    h, m, sec = report.paper_time(setting(ref).task, run_info(ref).get("algo")).split(":")
-    return 3600 * int(h) + 60 * int(m) + int(sec)
+    return _table3_s(setting(ref).task, run_info(ref).get("algo"))
 
 
 REACH_TABLE3 = ["bp/reach/ddpg", "bp/reach/her", "bp/reach/rdher"]
@@ -476,6 +597,11 @@ for _f in (min, max):
         "Reach at the paper's budget, DDPG, HER and RDHER: the paper's Table 3 time of one run "
         f"over ours, the {'smallest' if _f is min else 'largest'}", functools.partial(
             lambda f: f(_paper_s(r) / per_run_s(r) for r in REACH_TABLE3), _f))
+    add(f"paper/slide+pnp/her+dher+rdher:table3:{_f.__name__}", TASKS_PY, "the paper's Table 3 "
+        "on Slide and PickAndPlace, HER, DHER and RDHER: the "
+        f"{'shortest' if _f is min else 'longest'} run", functools.partial(
+            lambda f: Duration(f(_table3_s(TASKS[t], a) for t in ("slide", "pnp")
+                                 for a in ("her", "dher", "rdher"))), _f))
 
 
 SLIDE_PNP_DHER = ["bp/slide/dher", "bp/slide/rdher", "bp/pnp/dher", "bp/pnp/rdher"]
@@ -547,6 +673,16 @@ add("bl/push-fast:to_0.9:max", "bench_learning/push-fast.json", "preset=fast on 
                 for r in _bl("push-fast")["results"].values()))
 
 
+def _cycle(setting: str, key: str) -> float:
+    rows = json.loads((RESULTS / "bench_cycle.json").read_text(encoding="utf-8"))
+    return float(next(r for r in rows if r["setting"] == setting)[key])
+
+
+for _set in ("default", "fast"):
+    add(f"cycle/{_set}:update_ms", "bench_cycle.json", f"bench_cycle.md, FetchPush, {_set}: one "
+        "sampled gradient step, ms", functools.partial(_cycle, _set, "update_ms"))
+
+
 SLIDE_COMBINED = ["yp/slide/rdher", "yp/slide/rdher_clip", "bp/slide/dher"]
 for _f in (min, max):
     add(f"yp/slide/rdher+rdher_clip+dher:combined_run:{_f.__name__}", "beyond/paper/FetchSlide",
@@ -579,9 +715,9 @@ for _abbr, _task in TASKS.items():
 
 add("bc/push/her:to_0.9:min", "benchmark/cpu/FetchPush/her", "preset=fast HER on Push: the "
     "fewest env steps of a seed to a trailing mean of 3 epochs of 0.9 (bench_learning's rule)",
-    lambda: min(h["env_steps"] for h in _her_hits() if h))
+    lambda: min(h for h in _her_hits() if h))
 add("bc/push/her:to_0.9:max", "benchmark/cpu/FetchPush/her", "the same: the most",
-    lambda: max(h["env_steps"] for h in _her_hits() if h))
+    lambda: max(h for h in _her_hits() if h))
 add("bc/push/her:to_0.9:n", "benchmark/cpu/FetchPush/her", "the same: seeds that get there",
     lambda: sum(h is not None for h in _her_hits()))
 add("bc/push/her:to_0.9:never", "benchmark/cpu/FetchPush/her", "the same: the seeds that never "
@@ -597,19 +733,17 @@ add("bl/push-fast:paced_min:min", "bench_learning", "preset=fast on Push, seeds 
 add("bl/push-fast:paced_min:max", "bench_learning", "the same: the most",
     lambda: max(_paced_minutes()))
 
-add("bl/pnp-fast:to_0.5", "bench_learning/pnp-fast.json", "preset=fast on PickAndPlace, seed 0: "
-    "env steps to its first test of 0.5", lambda: float(
-        _bl("pnp-fast")["results"]["0"]["hits"]["0.5"]["single"]["env_steps"]))
-add("bl/pnp-fast:best", "bench_learning/pnp-fast.json", "the same run: its best test success "
-    "(a rate)", lambda: _bl("pnp-fast")["results"]["0"]["best"])
-add("bl/pnp-fast:steps", "bench_learning/pnp-fast.json", "the same run: its env steps",
-    lambda: float(_bl("pnp-fast")["results"]["0"]["env_steps"]))
 
 def source(name: str) -> Path:
     """The committed file or directory figure ``name`` comes from (what its link must name): a
     setting's directory, for a glob its task's, for a named figure its own ``source``."""
     if name in NAMED:
         return RESULTS / NAMED[name].source
+    if name.startswith("paper/"):
+        return RESULTS / TASKS_PY
+    if name.startswith("bl/"):
+        bl, field = name[3:].split(":")[:2]
+        return RESULTS / (RETESTS if field == "retest" else f"bench_learning/{bl}.json")
     ref = name.split(":")[0].split("-")[0]
     if any(c in ref for c in "*?["):
         kind, task, _ = ref.split("/")
@@ -631,7 +765,7 @@ def value(name: str) -> float | str:
 # ------------------------------------------------------------------ the markdown
 
 MARK = re.compile(r'\[([^\[\]]*)\]\(([^()\s]*) "q:([^"]+)"\)')
-NUMBER = re.compile(r"[+\u2212-]?\d[\d,]*(?:\.\d+)?(?:e[+-]?\d+)?")
+NUMBER = re.compile(r"[+\u2212-]?\d[\d,]*(?:\.\d+)?(?:e[+-]?\d+)?k?")
 
 
 @dataclass(frozen=True)
@@ -645,9 +779,16 @@ class Quote:
     end: int
 
 
+# A link in code (a span may go on over a line break, not over a paragraph) is an example.
+CODE = re.compile(r"```.*?```|`(?:[^`\n]|\n(?!\n))+`", re.DOTALL)
+
+
 def quotes(path: Path) -> Iterator[Quote]:
     src = path.read_text(encoding="utf-8")
+    code = [m.span() for m in CODE.finditer(src)]
     for m in MARK.finditer(src):
+        if any(a <= m.start() < b for a, b in code):
+            continue
         yield Quote(path, src.count("\n", 0, m.start()) + 1, m.group(1), m.group(2),
                     m.group(3), m.start(1), m.end(1))
 
@@ -657,6 +798,10 @@ def render(val: float | str, like: str) -> str:
     significant digits, thousands commas, a leading + on a signed figure, − or - for minus)."""
     if isinstance(val, str):
         return val
+    if isinstance(val, Duration):
+        return clock(val, like)
+    if like.endswith("k"):  # in thousands
+        return render(val / 1000, like[:-1]) + "k"
     body = like.lstrip("+\u2212-")
     if "e" in body:
         digits = len(body.split("e")[0].replace(".", "").lstrip("0"))
@@ -664,7 +809,9 @@ def render(val: float | str, like: str) -> str:
         out = f"{mant}e{int(exp):+03d}"
     else:
         places = len(body.split(".")[1]) if "." in body else 0
-        out = f"{round(val, places) + 0.0:{',' if ',' in body else ''}.{places}f}"
+        # Halves round up, as a reader rounds 112,500 to 113k (float round() goes to even).
+        half_up = Decimal(repr(float(val))).quantize(Decimal(1).scaleb(-places), ROUND_HALF_UP)
+        out = f"{float(half_up) + 0.0:{',' if ',' in body else ''}.{places}f}"
         if float(out.replace(",", "")) == 0:
             out = out.lstrip("-")  # a tie reads 0.0 or +0.0, never -0.0
     if out.startswith("-"):
@@ -690,9 +837,9 @@ def problem(q: Quote, root: Path = ROOT) -> str | None:
     target = (q.path.parent / q.target.split("#")[0]).resolve()
     if target != src.resolve():
         return (f"{where}: {q.name}: the link goes to {q.target}, not to the data the figure "
-                f"comes from ({src.relative_to(ROOT)})")
-    if isinstance(val, str):
-        ok = q.text == val
+                f"comes from ({src.resolve().relative_to(ROOT)})")
+    if isinstance(val, str | Duration):
+        ok = render(val, q.text) == q.text
     else:
         if not NUMBER.fullmatch(q.text):
             return f"{where}: {q.name}: the text {q.text!r} is not a number"

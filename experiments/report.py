@@ -273,19 +273,25 @@ def vs_her(s: SettingData, data: Sequence[SettingData]) -> dict[str, tuple[float
     return {k: welch(list(mine[k].values()), list(ref[k].values())) for k in ("final", "mean")}
 
 
-def windows(s: SettingData) -> list[tuple[str, Stat]]:
-    """Per env-step window (the fractions :data:`WINDOWS` of the longest run's steps): the mean
-    over seeds of each seed's mean test success over the epochs that end in the window."""
+def window_seeds(s: SettingData) -> list[tuple[str, dict[int, float]]]:
+    """Per env-step window (the fractions :data:`WINDOWS` of the longest run's steps): each
+    seed's mean test success over the epochs that end in the window (seeds with such epochs)."""
     succ, steps = s.column("test_success"), s.column("env_steps")
     top = max((max(v) for v in steps.values() if v), default=0.0)
     out, lo = [], 0.0
     for frac in WINDOWS:
         hi = frac * top
-        per = [statistics.fmean(x for x, n in zip(succ[k], steps[k], strict=True) if lo < n <= hi)
-               for k in succ if any(lo < n <= hi for n in steps[k])]
-        out.append((f"{_k(lo)}-{_k(hi)} steps", stat(per)))
+        per = {k: statistics.fmean(x for x, n in zip(succ[k], steps[k], strict=True)
+                                   if lo < n <= hi)
+               for k in succ if any(lo < n <= hi for n in steps[k])}
+        out.append((f"{_k(lo)}-{_k(hi)} steps", per))
         lo = hi
     return out
+
+
+def windows(s: SettingData) -> list[tuple[str, Stat]]:
+    """Per env-step window: the mean over seeds of :func:`window_seeds`."""
+    return [(label, stat(list(per.values()))) for label, per in window_seeds(s)]
 
 
 def _k(n: float) -> str:

@@ -64,3 +64,53 @@ def test_the_write_command_mends_a_figure(tmp_path):
         f"final [−17.3]({rd} \"q:bp/slide/rdher-her:final\") "
         f"(p [0.03]({rd} \"q:bp/slide/rdher-her:final:p\"))\n")
     assert quoted.check([md], root=tmp_path)[1] == []
+
+
+@pytest.mark.parametrize(("seconds", "like", "out"), [
+    (1996.4, "1 min 1 s", "33 min 16 s"), (1996.6, "0:00", "33:17"), (6313, "1:00:00", "1:45:13"),
+    (6313, "1 h 0 min 0 s", "1 h 45 min 13 s"), (6313, "0 min 0 s", "105 min 13 s")])
+def test_a_wall_clock_is_written_in_the_style_of_its_text(seconds, like, out):
+    assert quoted.render(quoted.Duration(seconds), like) == out
+
+
+@pytest.mark.parametrize(("val", "like", "out"), [
+    (112500.0, "113k", "113k"), (112499.0, "113k", "112k"), (2.5, "3", "3"), (-2.5, "-3", "-3"),
+    (0.0435, "0.044", "0.044"), (0.04349931, "0.044", "0.043")])
+def test_halves_round_up_and_thousands_keep_their_k(val, like, out):
+    assert quoted.render(val, like) == out
+
+
+def test_the_papers_figures_are_checked_against_the_task_table(tmp_path):
+    from rdher_jax.tasks import TASKS
+
+    md = tmp_path / "x.md"
+    tasks = os.path.relpath(EXP.parent / "rdher_jax" / "tasks.py", tmp_path)
+    assert quoted.value("paper/push/rdher:table2") == TASKS["FetchPush"].paper_table2["rdher"]
+    md.write_text(f"[58]({tasks} \"q:paper/push/rdher:table2\"), [3:53:16]({tasks} "
+                  "\"q:paper/push/rdher:table3\"),\n"
+                  f"[57]({tasks} \"q:paper/push/rdher:table2\"), [3 h 53 min 15 s]({tasks} "
+                  "\"q:paper/push/rdher:table3\"), `[1](x \"q:paper/push/her:table2\")`\n",
+                  encoding="utf-8")
+    n, bad = quoted.check([md], root=tmp_path)
+    assert n == 4  # the link in code is an example, not a figure
+    assert [b.split(": ")[1] for b in bad] == ["paper/push/rdher:table2",
+                                               "paper/push/rdher:table3"]
+    assert "'3 h 53 min 16 s'" in bad[1]
+
+
+def test_seeds_for_power_grows_with_the_spread_and_shrinks_with_the_difference():
+    n = quoted.seeds_for_power(10.0, 10.0, 10.0)
+    assert n == 17  # the two-sample t-test at d = 1: 17 per group (statsmodels' TTestIndPower)
+    assert quoted.seeds_for_power(10.0, 20.0, 20.0) > n > quoted.seeds_for_power(20.0, 10.0, 10.0)
+    assert quoted.seeds_for_power(10.0, 10.0, None) < n  # paired: the same spread per difference
+
+
+def test_bench_learning_figures_and_retests():
+    if not (EXP / "results" / "bench_learning" / "pnp-fast-600k.json").is_file():
+        pytest.skip("no committed bench_learning results")
+    assert quoted.value("bl/pnp-fast-600k:to0.9m3:s0") == "not reached"
+    assert quoted.value("bl/pnp-fast-600k:to0.9m3:s2") == 582500.0
+    assert quoted.value("bl/pnp-fast-600k:retest:s1") == pytest.approx(83.0)
+    assert quoted.source("bl/pnp-fast-600k:retest:s1").name == "solve-baseline-retests.md"
+    with pytest.raises(KeyError):
+        quoted.value("bl/pnp-fast-600k:best")  # the seed goes last
