@@ -238,6 +238,7 @@ def main() -> None:
     if args.report_only and (out / f"{args.name}.json").is_file():  # keep what the runs had
         before = json.loads((out / f"{args.name}.json").read_text())
         limits, args.note = before.get("machine_limits"), args.note or before.get("note", "")
+        args.settings = args.settings or before["settings"]
     results = {}
     for seed in args.seeds:
         run_dir = Path(args.runs_dir) / f"{args.name}-s{seed}"

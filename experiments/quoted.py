@@ -353,28 +353,22 @@ def paper(ref: str, measure: str, rest: list[str]) -> float:
     return Duration(_table3_s(task, algo))
 
 
-RETESTS = "bench_learning/solve-baseline-retests.md"
-
-
 def learning(name: str, field: str, rest: list[str]) -> float | str:
     """``bl/<name>:<field>:s<seed>``: a figure of ``bench_learning/<name>.json``'s run of that
     seed: ``best`` (a rate), ``env_steps``, ``minutes``, ``to0.5`` / ``to0.9`` (env steps to the
     first test there), ``to0.5m3`` / ``to0.9m3`` (to the first trailing mean of 3 there; the
     text ``not reached`` where none is), ``to0.5_min``, ``to0.9m3_min``, ...: the same in
-    minutes of training; ``retest`` the best policy's 100-episode retest, %, from
-    :data:`RETESTS`."""
+    minutes of training; ``retest`` the best policy's retest at the end of the run, %."""
     if len(rest) != 1 or not re.fullmatch(r"s\d+", rest[0]):
         raise KeyError(f"bl/{name}:{field}: the seed goes last (:s0)")
     seed = rest[0][1:]
-    if field == "retest":
-        text = (RESULTS / RETESTS).read_text(encoding="utf-8")
-        m = re.search(rf"^{re.escape(name)}-s{seed}: .* test success ([\d.]+) over", text, re.M)
-        if not m:
-            raise KeyError(f"{RETESTS} has no retest of {name}-s{seed}")
-        return 100 * float(m[1])
     run = _bl(name)["results"].get(seed)
     if run is None:
         raise KeyError(f"bench_learning/{name}.json has no seed {seed}")
+    if field == "retest":
+        if not run.get("retest"):
+            raise KeyError(f"bench_learning/{name}.json has no retest of seed {seed}")
+        return 100 * float(run["retest"]["success"])
     if field in ("best", "env_steps"):
         return float(run[field])
     if field == "minutes":
@@ -743,7 +737,7 @@ def source(name: str) -> Path:
         return RESULTS / TASKS_PY
     if name.startswith("bl/"):
         bl, field = name[3:].split(":")[:2]
-        return RESULTS / (RETESTS if field == "retest" else f"bench_learning/{bl}.json")
+        return RESULTS / f"bench_learning/{bl}.json"
     ref = name.split(":")[0].split("-")[0]
     if any(c in ref for c in "*?["):
         kind, task, _ = ref.split("/")

@@ -111,6 +111,6 @@ def test_bench_learning_figures_and_retests():
     assert quoted.value("bl/pnp-fast-600k:to0.9m3:s0") == "not reached"
     assert quoted.value("bl/pnp-fast-600k:to0.9m3:s2") == 582500.0
     assert quoted.value("bl/pnp-fast-600k:retest:s1") == pytest.approx(83.0)
-    assert quoted.source("bl/pnp-fast-600k:retest:s1").name == "solve-baseline-retests.md"
+    assert quoted.source("bl/pnp-fast-600k:retest:s1").name == "pnp-fast-600k.json"
     with pytest.raises(KeyError):
         quoted.value("bl/pnp-fast-600k:best")  # the seed goes last
