@@ -74,9 +74,11 @@ def test_fetch_reach_rdher_learns(tmp_path):
     ("her", "exact")])
 def test_fast_preset_learner_options_train(tmp_path, algo, terminal):
     """The optional learner changes (all at once: n-step, TD3 smoothing and delay, targets
-    inside the cycle, LayerNorm, terminal on success) compile and train with HER and RDHER."""
+    inside the cycle, LayerNorm, terminal on success, a critic ensemble with a drawn target
+    subset) compile and train with HER and RDHER."""
     opts = dict(n_step=3 if terminal != "exact" else 1, target_noise=0.2, policy_delay=2,
-                target_every=2, polyak=0.99, layer_norm=True, terminal=terminal)
+                target_every=2, polyak=0.99, layer_norm=True, terminal=terminal, n_critics=3,
+                target_critics=2)
     cfg = resolve(Config(**{**TINY, **opts, "algo": algo, "run_dir": str(tmp_path / algo)}))
     env, trainer = executor.build(cfg)
     hp = trainer.hparams
@@ -92,6 +94,11 @@ def test_fast_preset_learner_options_train(tmp_path, algo, terminal):
     assert _adam_count(ts.ddpg.actor_opt_state) == int(m.updates) // 2
     assert "norm_0" in _param_names(ts.ddpg.critic_params)
     assert "norm_0" not in _param_names(ts.ddpg.actor_params)
+    # Three critics, each with its own target network, and every one of the targets moved.
+    ts0 = jax.jit(trainer.init)(jax.random.PRNGKey(0), hp)
+    new, old = (np.asarray(t.ddpg.target_critic_params["params"]["ensemble"]["mlp"]["out"]
+                           ["kernel"]) for t in (ts, ts0))
+    assert new.shape[0] == 3 and (np.abs(new - old).reshape(3, -1).max(1) > 0).all()
 
 
 def _param_names(params) -> str:
