@@ -14,7 +14,6 @@ benchmark can be completed over several sittings (an unfinished run is resumed).
 
 from __future__ import annotations
 
-import argparse
 import csv
 import json
 import platform
@@ -144,9 +143,7 @@ def write_tables(out: Path, name: str, data: dict, window: int) -> str:
     """``<name>.md`` and ``<name>.json`` from a setting's data (its settings, seeds, note,
     machine limits and per-seed results); returns the markdown."""
     results, limits = data["results"], data.get("machine_limits")
-    lines = [
-        f"# Learning speed: {name}",
-        "",
+    paragraph = (
         f"`python experiments/bench_learning.py --name {name} --seeds "
         f"{' '.join(map(str, data['seeds']))} -- {' '.join(data['settings'])}` on "
         f"{platform.machine()} ({platform.processor() or 'CPU'}); wall clock from the start "
@@ -154,14 +151,12 @@ def write_tables(out: Path, name: str, data: dict, window: int) -> str:
         "'start-up': from starting the process to that clock's start, for runs this script "
         "started fresh). "
         f"'mean of {window}': the first epoch whose trailing mean of {window} epochs "
-        "reaches the threshold." + (f" {data['note']}" if data.get("note") else ""),
-        "",
-        "| seed | epochs | env steps | minutes | best | "
-        + " | ".join(f"to {t} | to {t}, mean of {window}" for t in THRESHOLDS)
-        + f" | start-up (s) | to {THRESHOLDS[-1]}, mean of {window}, from process start | "
-        "retest of the best policy |",
-        "|---" * (8 + 2 * len(THRESHOLDS)) + "|",
-    ]
+        "reaches the threshold." + (f" {data['note']}" if data.get("note") else ""))
+    head = ["seed", "epochs", "env steps", "minutes", "best",
+            *(c for t in THRESHOLDS for c in (f"to {t}", f"to {t}, mean of {window}")),
+            "start-up (s)", f"to {THRESHOLDS[-1]}, mean of {window}, from process start",
+            "retest of the best policy"]
+    rows = []
     for seed, r in results.items():
         cells = []
         for t in THRESHOLDS:
@@ -171,15 +166,14 @@ def write_tables(out: Path, name: str, data: dict, window: int) -> str:
         cells += ["-" if up is None else f"{up:.1f}",
                   "-" if up is None or last is None
                   else f"{(up + last['wall_s']) / 60:.1f} min", retest_cell(r)]
-        lines.append(f"| {seed} | {r['epochs']} | {r['env_steps']:,} | {r['wall_s'] / 60:.1f} | "
-                     f"{r['best']:.2f} | " + " | ".join(cells) + " |")
+        rows.append([seed, r["epochs"], f"{r['env_steps']:,}", f"{r['wall_s'] / 60:.1f}",
+                     f"{r['best']:.2f}", *cells])
+    blocks: list = [paragraph, harness.table(head, rows)]
     if limits is not None:
-        lines += ["", f"The machine's ceilings, measured just before the runs (`python "
-                  f"{limits['script']}`):", "", "```", limits["table"], "```"]
-    text = "\n".join(lines) + "\n"
-    (out / f"{name}.md").write_text(text)
-    (out / f"{name}.json").write_text(json.dumps(data, indent=1))
-    return text
+        blocks += [f"The machine's ceilings, measured just before the runs (`python "
+                   f"{limits['script']}`):", ["```", limits["table"], "```"]]
+    return harness.write_results(out / name, f"Learning speed: {name}", blocks, data,
+                                 echo=False)
 
 
 def retabulate(out: Path, window: int) -> list[str]:
@@ -200,14 +194,16 @@ def retabulate(out: Path, window: int) -> list[str]:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = harness.parser("bench_learning.py", __doc__.splitlines()[0], limits=True,
+                        out=harness.RESULTS / "bench_learning",
+                        out_help="results folder: <name>.md, .json, .png, per-seed CSVs and "
+                        "summary.md")
     ap.add_argument("--name", help="name of this setting (file names)")
     ap.add_argument("--summary", action="store_true",
                     help="write summary.md over every setting in --out, train nothing")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--window", type=int, default=3)
     ap.add_argument("--runs-dir", default="runs/bench_learning")
-    ap.add_argument("--out", default="experiments/results/bench_learning")
     ap.add_argument("--retabulate", action="store_true",
                     help="recompute the hits of every setting in --out from the curves in its "
                     "JSON and rewrite its tables (and summary.md), train nothing")
@@ -215,10 +211,6 @@ def main() -> None:
                     help="tabulate the runs as they stand (e.g. stopped early), train nothing")
     ap.add_argument("--note", default="", help="a sentence on how the runs were made, kept in "
                     "the .md and .json (e.g. how many ran at once)")
-    ap.add_argument("--limits-script", default=None, metavar="PATH",
-                    help="a machine-ceilings script (run as `python PATH --json FILE`, printing "
-                    "a table) to run before the seeds; its table goes into the report beside "
-                    "the runs, so they are read against the same day's machine")
     ap.add_argument("--retest", type=int, default=100, metavar="N",
                     help="each run ends by retesting its best policy on N new episodes "
                     "(the trainer's retest=N; 0: none); its result goes into the tables")

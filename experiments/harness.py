@@ -38,7 +38,7 @@ RESULTS = HERE / "results"
 
 def parser(script: str, description: str, *, out: str | Path | None = None,
            repeats: int | None = None, quick: str | None = None,
-           limits: bool = False) -> argparse.ArgumentParser:
+           limits: bool = False, out_help: str | None = None) -> argparse.ArgumentParser:
     """The common argparse base for ``experiments/<script>.py``.
 
     Args:
@@ -49,11 +49,12 @@ def parser(script: str, description: str, *, out: str | Path | None = None,
       repeats: if given, ``--repeats`` with this default (interleaved repeats, median).
       quick: if given, ``--quick`` with this help (what the smallest run does).
       limits: add ``--limits-script`` (a machine-ceilings script run first, recorded).
+      out_help: ``--out``'s help where it is not one results file (e.g. a folder of them).
     """
     ap = argparse.ArgumentParser(prog=f"python experiments/{script}", description=description)
     ap.add_argument("--out", type=Path,
                     default=Path(out) if out else RESULTS / f"{Path(script).stem}.md",
-                    help="results file (.md; the .json beside it)")
+                    help=out_help or "results file (.md; the .json beside it)")
     if repeats is not None:
         ap.add_argument("--repeats", type=int, default=repeats,
                         help="interleaved repeats (medians)")
