@@ -6,7 +6,6 @@ One run, in its own directory: a thin parser over ``rdher_jax.driver`` (which al
 
 from __future__ import annotations
 
-import json
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -72,26 +71,11 @@ def main(argv: list[str] | None = None) -> int:
         f"({float(row['wall_time']):.0f} s), best {out.best[0]:.3f}"
     )
     if cfg.retest:
+        from .policy_test import retest  # JAX is loaded by now
+
         print(retest(Path(out.out_dir), cfg.retest))
     print(f"results in {out.out_dir}/: metrics.csv, success.png, config.yaml, checkpoints/")
     return 0
-
-
-RETEST_FILE = "retest.json"
-
-
-def retest(run_dir: Path, episodes: int) -> str:
-    """Retests the best policy of ``run_dir`` on ``episodes`` new episodes (seed 0, as
-    ``python -m rdher_jax.evaluate``), writes ``retest.json`` and returns the line to print."""
-    from .evaluate import evaluate
-
-    r = evaluate(run_dir, episodes)
-    tmp = run_dir / (RETEST_FILE + ".tmp")
-    tmp.write_text(json.dumps(r, indent=1) + "\n")
-    tmp.replace(run_dir / RETEST_FILE)
-    won = round(r["success"] * episodes)
-    return (f"retest: the best policy (epoch {r['epoch']}) succeeds on {won} of {episodes} new "
-            f"episodes ({100 * r['success']:.0f}%)")
 
 
 if __name__ == "__main__":

@@ -14,7 +14,7 @@ import jax
 import numpy as np
 import pytest
 
-from rdher_jax import executor, outputs
+from rdher_jax import executor, outputs, policy_test
 from rdher_jax import train as train_mod
 from rdher_jax.checkpoint import Checkpointer
 from rdher_jax.config import Config, parse_args, resolve
@@ -196,8 +196,8 @@ def test_run_outputs_and_evaluate(tmp_path):
     assert 0.0 <= r["success"] <= 1.0 and r["episodes"] == 4 and r["backend"] == "mujoco"
     # The end-of-run retest (preset=fast sets retest=100): the same episodes as evaluate's,
     # written to retest.json, and the line that says so.
-    line = train_mod.retest(run, 4)
-    saved = json.loads((run / train_mod.RETEST_FILE).read_text())
+    line = policy_test.retest(run, 4)
+    saved = json.loads((run / policy_test.RETEST_FILE).read_text())
     assert saved == r
     want = round(r["success"] * 4)
     assert line == (f"retest: the best policy (epoch {r['epoch']}) succeeds on {want} of 4 new "
