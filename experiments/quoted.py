@@ -358,7 +358,9 @@ def learning(name: str, field: str, rest: list[str]) -> float | str:
     seed: ``best`` (a rate), ``env_steps``, ``minutes``, ``to0.5`` / ``to0.9`` (env steps to the
     first test there), ``to0.5m3`` / ``to0.9m3`` (to the first trailing mean of 3 there; the
     text ``not reached`` where none is), ``to0.5_min``, ``to0.9m3_min``, ...: the same in
-    minutes of training; ``retest`` the best policy's retest at the end of the run, %."""
+    minutes of training; ``retest`` the best policy's retest at the end of the run, %;
+    ``w<a>-<b>k`` the mean test success (%) of the epochs that end after a and by b thousand
+    env steps (``w300-400k``)."""
     if len(rest) != 1 or not re.fullmatch(r"s\d+", rest[0]):
         raise KeyError(f"bl/{name}:{field}: the seed goes last (:s0)")
     seed = rest[0][1:]
@@ -371,6 +373,12 @@ def learning(name: str, field: str, rest: list[str]) -> float | str:
         return 100 * float(run["retest"]["success"])
     if field in ("best", "env_steps"):
         return float(run[field])
+    if m := re.fullmatch(r"w(\d+)-(\d+)k", field):
+        lo, hi = 1000 * int(m[1]), 1000 * int(m[2])
+        window = [succ for steps, _, succ in run["curve"] if lo < steps <= hi]
+        if not window:
+            raise KeyError(f"bench_learning/{name}.json seed {seed} has no epoch in {field}")
+        return 100 * statistics.fmean(window)
     if field == "minutes":
         return float(run["wall_s"]) / 60
     if m := re.fullmatch(HIT.pattern + "(_min)?", field):
@@ -378,7 +386,7 @@ def learning(name: str, field: str, rest: list[str]) -> float | str:
         return "not reached" if got is None else \
             float(got["wall_s"]) / 60 if m[3] else float(got["env_steps"])
     raise KeyError(f"no bench_learning figure {field!r} (best, env_steps, minutes, to<x>, "
-                   "to<x>m3, to<x>_min, to<x>m3_min, retest)")
+                   "to<x>m3, to<x>_min, to<x>m3_min, retest, w<a>-<b>k)")
 
 
 def _table3_s(task: str, algo: str | None) -> float:
