@@ -46,4 +46,7 @@ def rollout(env: Any, policy: Callable[[Any, Any], jax.Array], reset_keys: jax.A
     if step_keys is None:
         steps = env.episode_length if steps is None else steps
     last, ys = jax.lax.scan(step, first, step_keys, length=steps if step_keys is None else None)
+    check = getattr(env.backend, "check", None)
+    if check is not None:  # the warp backend: its buffers' overflow is an error
+        check(last.data)
     return first, last, ys
