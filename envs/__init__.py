@@ -47,11 +47,11 @@ def default_backend() -> str:
 
 
 def quiet_warp(wp=None) -> None:
-    """Warp prints its version, devices and each module it builds: off."""
+    """Warp prints its version, devices, each module it builds and, on a machine without
+    CUDA, a warning that GPU execution is unavailable: off (errors still print)."""
     if wp is None:
         import warp as wp
-    wp.config.quiet = True
-    wp.config.verbose = False
+    wp.config.log_level = wp.LOG_ERROR
 
 
 def warp_available() -> str | None:

@@ -15,8 +15,11 @@ for training; Warp has CPU kernels and trains on a CPU too (docs/performance.md)
 Warp's contacts and constraint rows live in buffers of fixed capacity: ``naconmax`` contacts
 shared by all the envs (worlds) of one batched call and ``njmax`` constraint rows per env.
 ``WarpBackend`` sizes both from the scene (``contact_capacity``) and the number of envs it is
-built for; a step that would need more sets a bit of Warp's per-env overflow mask, which stays
-set until the env's next reset. ``WarpBackend.overflow(data)`` reads it, and ``envs.rollout``
+built for. The contact bound is a true upper bound (each pair's most contacts, summed), so the
+contact buffer cannot overflow; it must not: on a CPU, Warp 1.14's convex narrowphase crashes
+the process (segmentation fault) when it does. The row bound assumes every contact active at
+once. A step that needs more rows than ``njmax`` sets a bit of Warp's per-env overflow mask,
+which stays set until the env's next reset. ``WarpBackend.overflow(data)`` reads it, and ``envs.rollout``
 raises on it at the end of every rollout (``WarpBackend.check``): a dropped contact is an
 error, never silent.
 """
@@ -160,19 +163,20 @@ class WarpBackend(MjxBackend):
     """``MjxBackend`` stepping MJX's Warp implementation (``impl="warp"``).
 
     ``worlds`` is the most envs any one batched call will step (all of them: a sweep's runs
-    times its envs); the shared contact buffer is sized for it.
+    times its envs); the shared contact buffer is sized for it. ``capacity`` replaces the
+    scene's ``contact_capacity`` (tests use it to provoke an overflow).
     """
 
     name = "warp"
 
-    def __init__(self, setup: Setup, worlds: int = 1024):
+    def __init__(self, setup: Setup, worlds: int = 1024, capacity: ContactCapacity | None = None):
         why = warp_available()
         if why:
             raise RuntimeError(why)
         quiet_warp()
         self.setup = setup
         m = setup.model
-        self.capacity = contact_capacity(m)
+        self.capacity = capacity or contact_capacity(m)
         self.worlds = int(worlds)
         self.naconmax = self.capacity.contacts * self.worlds
         self.njmax = self.capacity.rows
@@ -207,5 +211,5 @@ def _raise_on_overflow(bits) -> None:
 
         raise RuntimeError(
             f"backend=warp: the physics ran out of buffer ({OverflowType(int(bits))!r}): "
-            f"contacts or constraint rows were dropped. Build the env for more worlds "
-            f"(make_env(..., worlds=N)) or report the scene")
+            f"contacts or constraint rows were dropped; the buffers are sized from the scene "
+            f"(envs/mjx_backend.contact_capacity) and the worlds make_env was given")
