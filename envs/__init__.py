@@ -147,6 +147,6 @@ def make_env(name: str, backend: str | None = None, scene: str | None = None,
     return FetchEnv(setup, physics, auto_reset=auto_reset, episode_length=episode_length)
 
 
-__all__ = ["BACKENDS", "CPU_XLA_FLAGS", "WARP_INSTALL", "FetchEnv", "GYMNASIUM_TASK_NAMES", "MOVING_TASK_NAMES",
-           "State", "TASK_NAMES", "default_backend", "make_env",
+__all__ = ["BACKENDS", "CPU_XLA_FLAGS", "FetchEnv", "GYMNASIUM_TASK_NAMES", "MOVING_TASK_NAMES",
+           "State", "TASK_NAMES", "WARP_INSTALL", "default_backend", "make_env", "quiet_warp",
            "warp_available"]

@@ -19,9 +19,9 @@ built for. The contact bound is a true upper bound (each pair's most contacts, s
 contact buffer cannot overflow; it must not: on a CPU, Warp 1.14's convex narrowphase crashes
 the process (segmentation fault) when it does. The row bound assumes every contact active at
 once. A step that needs more rows than ``njmax`` sets a bit of Warp's per-env overflow mask,
-which stays set until the env's next reset. ``WarpBackend.overflow(data)`` reads it, and ``envs.rollout``
-raises on it at the end of every rollout (``WarpBackend.check``): a dropped contact is an
-error, never silent.
+which stays set until the env's next reset. ``WarpBackend.overflow(data)`` reads it, and
+``envs.rollout`` raises on it at the end of every rollout (``WarpBackend.check``): a dropped
+constraint is an error, never silent.
 """
 
 from __future__ import annotations
@@ -41,6 +41,7 @@ from mujoco import mjx  # noqa: E402
 from mujoco.mjx._src import support  # noqa: E402
 
 from .physics import MOCAP_QUAT_DELTA, N_SUBSTEPS, RAW_SIZE, RAW_SLICES, Setup  # noqa: E402
+
 
 class MjxBackend:
     """Physics interface ``reset`` / ``step`` over ``mjx.Data`` (MJX's JAX implementation)."""
