@@ -1,0 +1,237 @@
+"""The three physics backends on this CPU: compile time, first epoch and env steps/s of the
+FetchPush training program, at 16, 256 and 1,024 envs.
+
+    python experiments/bench_backends.py --limits-script ../shared/bench/machine_limits.py
+
+For each backend (``mujoco``, ``mjx``, ``warp``) and each ``num_envs``, one child process, with
+a deadline (``--timeout``), no persistent XLA compilation cache (the compile times are among
+the figures) and Warp's kernel cache as it is (warm after the first warp child; the first
+child's Warp build is recorded in its row):
+
+1. env steps/s: ``jit`` of reset + a ``--steps``-step ``lax.scan`` of ``vmap(env.step)`` with
+   random actions (``bench_envs.make_rollout``): XLA compile time, then the median of
+   ``--calls`` timed calls after one warm call;
+2. the training program: FetchPush, HER, ``num_envs`` envs, one cycle per epoch
+   (``n_cycles=1``; every other key the default: 40 batches of 256, 10 test episodes): XLA
+   compile time of ``program.epoch`` (trace + lower + compile) and the first epoch's time.
+
+A child that misses its deadline leaves the figures it printed; the rest of its row reads
+"did not finish in N s". Then, for ``warp`` at 1,024 envs, the time from process start to the
+end of the first epoch of ``python -m rdher_jax.train`` (same settings, one epoch), with Warp's
+kernel cache warm and the XLA cache empty; and the machine's ceilings (``--limits-script``).
+Writes ``experiments/results/bench_backends.{md,json}``. Pin it to one core (``taskset -c 0``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+import harness  # noqa: E402
+
+BACKENDS = ("mujoco", "mjx", "warp")
+SIZES = (16, 256, 1024)
+# The training program: FetchPush with HER, one cycle an epoch, the rest the defaults.
+TRAIN_KEYS = dict(env="FetchPush", algo="her", n_cycles=1, progress=False)
+
+
+def child(backend: str, num_envs: int, steps: int, calls: int) -> None:
+    """One (backend, num_envs) row, printed as JSON lines as the figures come."""
+    t_start = time.perf_counter()
+    from rdher_jax import startup
+
+    startup.setup(startup.Startup(ffi=backend == "mujoco", compile_cache=False))
+    import jax
+    from bench_envs import batch_keys, compile_timed, make_rollout
+
+    from rdher_jax.config import Config, resolve
+    from rdher_jax.executor import build
+
+    def emit(**kw):
+        print(json.dumps(kw), flush=True)
+
+    cfg = resolve(Config(**TRAIN_KEYS, backend=backend, num_envs=num_envs,
+                         run_dir=tempfile.mkdtemp()))
+    t0 = time.perf_counter()
+    env, program = build(cfg)
+    emit(build_s=time.perf_counter() - t0, scene=env.setup.variant)
+
+    # 1. env steps/s
+    rollout = make_rollout(env, steps=steps)
+    keys = batch_keys(0, num_envs)
+    fn, lower_s, compile_s = compile_timed(rollout, keys)
+    emit(env_compile_s=lower_s + compile_s)
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn(keys))
+    emit(env_first_call_s=time.perf_counter() - t0)
+    times = []
+    for i in range(calls):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(batch_keys(i + 1, num_envs)))
+        times.append(time.perf_counter() - t0)
+    t = sorted(times)[len(times) // 2]
+    emit(env_steps_per_s=num_envs * steps / t)
+
+    # 2. the training program
+    hp = program.hparams
+    ts = jax.block_until_ready(jax.jit(program.init)(jax.random.PRNGKey(0), hp))
+    t0 = time.perf_counter()
+    compiled = jax.jit(program.epoch).lower(ts, hp).compile()
+    emit(epoch_compile_s=time.perf_counter() - t0)
+    t0 = time.perf_counter()
+    ts, m = jax.block_until_ready(compiled(ts, hp))
+    emit(first_epoch_s=time.perf_counter() - t0, epoch_env_steps=int(m.env_steps),
+         process_s=time.perf_counter() - t_start)
+
+
+def run_child(args: list[str], timeout: float, env: dict | None = None) -> tuple[dict, str]:
+    """Run this script as a child; its JSON lines merged, and how it ended."""
+    t0 = time.perf_counter()
+    try:
+        p = subprocess.run([sys.executable, str(Path(__file__).resolve()), *args],
+                           capture_output=True, text=True, timeout=timeout, env=env)
+        out, end = p.stdout, ("ok" if p.returncode == 0 else f"exit {p.returncode}: "
+                              + (p.stderr.strip().splitlines() or [""])[-1][:200])
+    except subprocess.TimeoutExpired as e:
+        out = e.stdout.decode() if isinstance(e.stdout, bytes) else (e.stdout or "")
+        end = f"did not finish in {timeout:.0f} s"
+    row: dict = {}
+    for ln in out.splitlines():
+        if ln.startswith("{"):
+            row.update(json.loads(ln))
+    row["end"], row["wall_s"] = end, time.perf_counter() - t0
+    return row, end
+
+
+def first_epoch_from_start(num_envs: int, timeout: float) -> dict:
+    """``python -m rdher_jax.train`` on warp, one epoch: seconds from process start to its
+    exit, and the in-run seconds of that epoch, with an empty XLA cache."""
+    with tempfile.TemporaryDirectory() as d:
+        env = {**os.environ, "RDHER_JAX_CACHE_DIR": os.path.join(d, "xla")}
+        argv = [sys.executable, "-m", "rdher_jax.train", "backend=warp", "epochs=1",
+                f"num_envs={num_envs}", f"run_dir={d}/run",
+                *(f"{k}={str(v).lower() if isinstance(v, bool) else v}"
+                  for k, v in TRAIN_KEYS.items())]
+        t0 = time.perf_counter()
+        try:
+            p = subprocess.run(argv, capture_output=True, text=True, timeout=timeout, env=env)
+            end = "ok" if p.returncode == 0 else f"exit {p.returncode}"
+        except subprocess.TimeoutExpired:
+            end = f"did not finish in {timeout:.0f} s"
+        process_s = time.perf_counter() - t0
+        rows = []
+        metrics = Path(d) / "run" / "metrics.csv"
+        if metrics.is_file():
+            import csv
+
+            with open(metrics, newline="") as f:
+                rows = list(csv.DictReader(f))
+    epoch_s = float(rows[0]["wall_time"]) if rows else None
+    return {"num_envs": num_envs, "end": end, "process_s": process_s,
+            "epoch_wall_time_s": epoch_s,
+            "command": " ".join(["python", *argv[1:4], *argv[5:]])}
+
+
+def fmt(row: dict, key: str, digits: int = 1) -> str:
+    if key in row:
+        return f"{row[key]:,.{digits}f}"
+    return row["end"] if row["end"] != "ok" else "-"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = harness.parser("bench_backends.py", __doc__.split("\n\n")[0], limits=True)
+    ap.add_argument("--backends", default=",".join(BACKENDS))
+    ap.add_argument("--sizes", default=",".join(map(str, SIZES)))
+    ap.add_argument("--timeout", type=float, default=300.0, help="seconds per child")
+    ap.add_argument("--steps", type=int, default=10, help="env steps per timed rollout")
+    ap.add_argument("--calls", type=int, default=3, help="timed rollout calls (median)")
+    ap.add_argument("--child", nargs=2, default=None, help=argparse_suppress())
+    a = ap.parse_args(argv)
+    if a.child:
+        child(a.child[0], int(a.child[1]), a.steps, a.calls)
+        return 0
+    limits = harness.machine_limits(a.limits_script)
+    from rdher_jax import startup
+
+    startup.setup(startup.Startup(ffi=False, compile_cache=False))
+    host = harness.host()
+    rows = []
+    data = {"train_keys": TRAIN_KEYS, "steps": a.steps, "calls": a.calls,
+            "timeout_s": a.timeout, "limits": limits, "rows": rows}
+
+    def write():
+        harness.write_results(a.out, "Physics backends on this CPU "
+                              "(`experiments/bench_backends.py`)", render(data, host),
+                              data, command=harness.command("bench_backends.py", argv),
+                              host=host, echo=False)
+
+    for backend in a.backends.split(","):
+        for n in map(int, a.sizes.split(",")):
+            harness.say(f"{backend} at {n} envs ...")
+            row, end = run_child(["--child", backend, str(n), "--steps", str(a.steps),
+                                  "--calls", str(a.calls)], a.timeout)
+            rows.append({"backend": backend, "num_envs": n, **row})
+            harness.say(f"  {end}: {row}")
+            write()
+    if "warp" in a.backends.split(","):
+        harness.say("warp: first epoch from process start ...")
+        data["from_start"] = first_epoch_from_start(max(map(int, a.sizes.split(","))),
+                                                    a.timeout)
+        harness.say(f"  {data['from_start']}")
+    write()
+    print((a.out.with_suffix(".md")).read_text())
+    return 0
+
+
+def argparse_suppress():
+    import argparse
+
+    return argparse.SUPPRESS
+
+
+def render(data: dict, host: dict) -> list:
+    rows = data["rows"]
+    blocks: list = [
+        f"{harness.machine(host)}; load average {host['loadavg'][0]:.2f}. One child process "
+        f"per row (deadline {data['timeout_s']:.0f} s), no persistent XLA cache. Env steps/s: "
+        f"median of {data['calls']} calls of reset + {data['steps']} steps of FetchPush with "
+        f"random actions. Epoch: FetchPush HER with n_cycles=1 (one cycle of num_envs x 50 "
+        f"env steps, 40 batches of 256, 10 test episodes). Figures: `bench_backends.json`.",
+        harness.table(
+            ["backend", "envs", "env compile (s)", "env first call (s)", "env steps/s",
+             "epoch compile (s)", "first epoch (s)", "child process (s)"],
+            [[r["backend"], r["num_envs"], fmt(r, "env_compile_s"),
+              fmt(r, "env_first_call_s"), fmt(r, "env_steps_per_s", 0),
+              fmt(r, "epoch_compile_s"), fmt(r, "first_epoch_s"), fmt(r, "process_s")]
+             for r in rows]),
+    ]
+    fs = data.get("from_start")
+    if fs:
+        run = next((r for r in rows if r["backend"] == "warp" and r["num_envs"] == fs["num_envs"]
+                    and "first_epoch_s" in r), None)
+        text = (f"From process start, warp, {fs['num_envs']} envs, Warp's kernel cache warm and "
+                f"an empty XLA cache: `{fs['command']}` ended ({fs['end']}) "
+                f"{fs['process_s']:.1f} s after it started, its one epoch included "
+                f"(metrics.csv's wall_time, counted from the end of init: "
+                f"{fs['epoch_wall_time_s'] or 0:.1f} s).")
+        if run:
+            text += (f" Less the epoch itself as the table measures it "
+                     f"({run['first_epoch_s']:.1f} s), the first epoch started about "
+                     f"{fs['process_s'] - run['first_epoch_s']:.1f} s after process start.")
+        blocks.append(text)
+    lim = data.get("limits")
+    if lim:
+        blocks.append(f"Machine ceilings, same run (`{lim['script']}`):")
+        blocks.append(["```", lim["table"], "```"])
+    return blocks
+
+
+if __name__ == "__main__":
+    sys.exit(main())
