@@ -17,15 +17,15 @@ child's Warp build is recorded in its row):
 
 A child that misses its deadline leaves the figures it printed; the rest of its row reads
 "did not finish in N s". Then, for ``warp`` at 1,024 envs, the time from process start to the
-end of the first epoch of ``python -m rdher_jax.train`` (same settings, one epoch), with Warp's
-kernel cache warm and the XLA cache empty; and the machine's ceilings (``--limits-script``).
+start of the first epoch (start-up, build, init and the epoch's compile, as ``rdher_jax.train``
+does first), with Warp's kernel cache warm and no XLA cache; and the machine's ceilings
+(``--limits-script``), measured first.
 Writes ``experiments/results/bench_backends.{md,json}``. Pin it to one core (``taskset -c 0``).
 """
 
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 import tempfile
@@ -110,33 +110,26 @@ def run_child(args: list[str], timeout: float, env: dict | None = None) -> tuple
     return row, end
 
 
-def first_epoch_from_start(num_envs: int, timeout: float) -> dict:
-    """``python -m rdher_jax.train`` on warp, one epoch: seconds from process start to its
-    exit, and the in-run seconds of that epoch, with an empty XLA cache."""
-    with tempfile.TemporaryDirectory() as d:
-        env = {**os.environ, "RDHER_JAX_CACHE_DIR": os.path.join(d, "xla")}
-        argv = [sys.executable, "-m", "rdher_jax.train", "backend=warp", "epochs=1",
-                f"num_envs={num_envs}", f"run_dir={d}/run",
-                *(f"{k}={str(v).lower() if isinstance(v, bool) else v}"
-                  for k, v in TRAIN_KEYS.items())]
-        t0 = time.perf_counter()
-        try:
-            p = subprocess.run(argv, capture_output=True, text=True, timeout=timeout, env=env)
-            end = "ok" if p.returncode == 0 else f"exit {p.returncode}"
-        except subprocess.TimeoutExpired:
-            end = f"did not finish in {timeout:.0f} s"
-        process_s = time.perf_counter() - t0
-        rows = []
-        metrics = Path(d) / "run" / "metrics.csv"
-        if metrics.is_file():
-            import csv
+def ready_child(backend: str, num_envs: int, t_launch: float) -> None:
+    """From process start to the first epoch's start: start-up, the env and program built,
+    the learner initialised and the epoch compiled, as ``rdher_jax.train`` does before its
+    first epoch. ``t_launch``: the parent's ``time.time()`` just before it started this
+    process (so interpreter start-up and imports count)."""
+    from rdher_jax import startup
 
-            with open(metrics, newline="") as f:
-                rows = list(csv.DictReader(f))
-    epoch_s = float(rows[0]["wall_time"]) if rows else None
-    return {"num_envs": num_envs, "end": end, "process_s": process_s,
-            "epoch_wall_time_s": epoch_s,
-            "command": " ".join(["python", *argv[1:4], *argv[5:]])}
+    startup.setup(startup.Startup(ffi=backend == "mujoco", compile_cache=False))
+    import jax
+
+    from rdher_jax.config import Config, resolve
+    from rdher_jax.executor import build
+
+    cfg = resolve(Config(**TRAIN_KEYS, backend=backend, num_envs=num_envs,
+                         run_dir=tempfile.mkdtemp()))
+    _, program = build(cfg)
+    hp = program.hparams
+    ts = jax.block_until_ready(jax.jit(program.init)(jax.random.PRNGKey(0), hp))
+    jax.jit(program.epoch).lower(ts, hp).compile()
+    print(json.dumps({"ready_s": time.time() - t_launch}), flush=True)
 
 
 def fmt(row: dict, key: str, digits: int = 1) -> str:
@@ -149,11 +142,17 @@ def main(argv: list[str] | None = None) -> int:
     ap = harness.parser("bench_backends.py", __doc__.split("\n\n")[0], limits=True)
     ap.add_argument("--backends", default=",".join(BACKENDS))
     ap.add_argument("--sizes", default=",".join(map(str, SIZES)))
-    ap.add_argument("--timeout", type=float, default=300.0, help="seconds per child")
+    ap.add_argument("--timeout", type=float, default=420.0, help="seconds per child")
     ap.add_argument("--steps", type=int, default=10, help="env steps per timed rollout")
     ap.add_argument("--calls", type=int, default=3, help="timed rollout calls (median)")
+    ap.add_argument("--mjx-timeout", type=float, default=300.0,
+                    help="seconds per mjx child (MJX's JAX implementation is slow on a CPU)")
     ap.add_argument("--child", nargs=2, default=None, help=argparse_suppress())
+    ap.add_argument("--ready", nargs=3, default=None, help=argparse_suppress())
     a = ap.parse_args(argv)
+    if a.ready:
+        ready_child(a.ready[0], int(a.ready[1]), float(a.ready[2]))
+        return 0
     if a.child:
         child(a.child[0], int(a.child[1]), a.steps, a.calls)
         return 0
@@ -176,14 +175,16 @@ def main(argv: list[str] | None = None) -> int:
         for n in map(int, a.sizes.split(",")):
             harness.say(f"{backend} at {n} envs ...")
             row, end = run_child(["--child", backend, str(n), "--steps", str(a.steps),
-                                  "--calls", str(a.calls)], a.timeout)
+                                  "--calls", str(a.calls)],
+                                 a.mjx_timeout if backend == "mjx" else a.timeout)
             rows.append({"backend": backend, "num_envs": n, **row})
             harness.say(f"  {end}: {row}")
             write()
     if "warp" in a.backends.split(","):
-        harness.say("warp: first epoch from process start ...")
-        data["from_start"] = first_epoch_from_start(max(map(int, a.sizes.split(","))),
-                                                    a.timeout)
+        n = max(map(int, a.sizes.split(",")))
+        harness.say(f"warp: from process start to the first epoch at {n} envs ...")
+        row, _ = run_child(["--ready", "warp", str(n), repr(time.time())], a.timeout)
+        data["from_start"] = {"num_envs": n, **row}
         harness.say(f"  {data['from_start']}")
     write()
     print((a.out.with_suffix(".md")).read_text())
@@ -214,18 +215,11 @@ def render(data: dict, host: dict) -> list:
     ]
     fs = data.get("from_start")
     if fs:
-        run = next((r for r in rows if r["backend"] == "warp" and r["num_envs"] == fs["num_envs"]
-                    and "first_epoch_s" in r), None)
-        text = (f"From process start, warp, {fs['num_envs']} envs, Warp's kernel cache warm and "
-                f"an empty XLA cache: `{fs['command']}` ended ({fs['end']}) "
-                f"{fs['process_s']:.1f} s after it started, its one epoch included "
-                f"(metrics.csv's wall_time, counted from the end of init: "
-                f"{fs['epoch_wall_time_s'] or 0:.1f} s).")
-        if run:
-            text += (f" Less the epoch itself as the table measures it "
-                     f"({run['first_epoch_s']:.1f} s), the first epoch started about "
-                     f"{fs['process_s'] - run['first_epoch_s']:.1f} s after process start.")
-        blocks.append(text)
+        ready = (f"{fs['ready_s']:.1f} s" if "ready_s" in fs else fs["end"])
+        blocks.append(
+            f"From process start to the first epoch's start, warp, {fs['num_envs']} envs, "
+            f"Warp's kernel cache warm and no XLA cache (start-up, env and program built, "
+            f"learner initialised, epoch compiled, as `rdher_jax.train` does first): {ready}.")
     lim = data.get("limits")
     if lim:
         blocks.append(f"Machine ceilings, same run (`{lim['script']}`):")
