@@ -104,7 +104,9 @@ def make_env(name: str, backend: str | None = None, scene: str | None = None,
         can be cached; built once per machine, falling back to the callback with a warning)
         or ``"callback"`` (``jax.pure_callback``). Bit-identical results.
       worlds: warp backend only: the most envs one batched call steps (a sweep's runs times
-        its envs); Warp's shared contact buffer is sized for it (default 1024).
+        its envs); Warp's shared contact buffer is sized for it (default 1024). ``rollout``
+        refuses a larger batch; a hand-written ``vmap`` over more envs could overflow the
+        buffer, which crashes Warp on a CPU.
     Returns:
       A ``FetchEnv`` with pure ``reset(key)`` and ``step(state, action)``.
     """

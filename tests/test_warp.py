@@ -160,6 +160,9 @@ def test_contact_buffers_are_sized_and_checked():
     run = jax.jit(lambda k: rollout(env, lambda _, s: jnp.zeros((4, 4)), k, steps=2))
     _, last, _ = run(keys)
     np.testing.assert_array_equal(env.backend.overflow(last.data), 0)
+    # More envs than the buffers were sized for: refused before anything runs.
+    with pytest.raises(ValueError, match="worlds=8"):
+        rollout(env, lambda _, s: jnp.zeros((8, 4)), jax.random.split(keys[0], 8), steps=2)
     # Eight constraint rows for an env resting on the table (35 rows): an overflow, an error.
     from rdher_jax.envs.fetch import FetchEnv
     from rdher_jax.envs.mjx_backend import ContactCapacity, WarpBackend
