@@ -6,7 +6,8 @@ FetchPush training program, at 16, 256 and 1,024 envs.
 For each backend (``mujoco``, ``mjx``, ``warp``) and each ``num_envs``, one child process, with
 a deadline (``--timeout``), no persistent XLA compilation cache (the compile times are among
 the figures) and Warp's kernel cache as it is (warm after the first warp child; the first
-child's Warp build is recorded in its row):
+child's Warp build is recorded in its row; ``mjx`` children run with ``envs.CPU_XLA_FLAGS``, as
+MJX on a CPU should):
 
 1. env steps/s: ``jit`` of reset + a ``--steps``-step ``lax.scan`` of ``vmap(env.step)`` with
    random actions (``bench_envs.make_rollout``): XLA compile time, then the median of
@@ -26,6 +27,7 @@ Writes ``experiments/results/bench_backends.{md,json}``. Pin it to one core (``t
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -36,6 +38,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 import harness  # noqa: E402
 
+TITLE = "Physics backends on this CPU (`experiments/bench_backends.py`)"
 BACKENDS = ("mujoco", "mjx", "warp")
 SIZES = (16, 256, 1024)
 # The training program: FetchPush with HER, one cycle an epoch, the rest the defaults.
@@ -92,7 +95,13 @@ def child(backend: str, num_envs: int, steps: int, calls: int) -> None:
 
 
 def run_child(args: list[str], timeout: float, env: dict | None = None) -> tuple[dict, str]:
-    """Run this script as a child; its JSON lines merged, and how it ended."""
+    """Run this script as a child; its JSON lines merged, and how it ended. A child that steps
+    ``mjx`` gets ``envs.CPU_XLA_FLAGS`` (the flags MJX needs on a CPU, docs/performance.md)."""
+    if "mjx" in args:
+        from rdher_jax.envs import CPU_XLA_FLAGS
+
+        env = {**(env or os.environ),
+               "XLA_FLAGS": " ".join([os.environ.get("XLA_FLAGS", ""), *CPU_XLA_FLAGS]).strip()}
     t0 = time.perf_counter()
     try:
         p = subprocess.run([sys.executable, str(Path(__file__).resolve()), *args],
@@ -147,27 +156,45 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--calls", type=int, default=3, help="timed rollout calls (median)")
     ap.add_argument("--mjx-timeout", type=float, default=300.0,
                     help="seconds per mjx child (MJX's JAX implementation is slow on a CPU)")
+    ap.add_argument("--merge", action="store_true",
+                    help="keep the rows (and machine ceilings) of the backends not measured "
+                         "now from the existing results file")
+    ap.add_argument("--render", action="store_true",
+                    help="only rewrite the markdown from the results file's JSON")
+    ap.add_argument("--note", default=None,
+                    help="with --render: a sentence to record under the table")
     ap.add_argument("--child", nargs=2, default=None, help=argparse_suppress())
     ap.add_argument("--ready", nargs=3, default=None, help=argparse_suppress())
     a = ap.parse_args(argv)
     if a.ready:
         ready_child(a.ready[0], int(a.ready[1]), float(a.ready[2]))
         return 0
+    if a.render:
+        doc = json.loads(a.out.with_suffix(".json").read_text())
+        command, host = doc.pop("command"), doc.pop("host")
+        if a.note:
+            doc["note"] = a.note
+        harness.write_results(a.out, TITLE, render(doc, host), doc, command=command, host=host)
+        return 0
     if a.child:
         child(a.child[0], int(a.child[1]), a.steps, a.calls)
         return 0
     limits = harness.machine_limits(a.limits_script)
+    kept: list = []
+    if a.merge and a.out.with_suffix(".json").is_file():
+        old = json.loads(a.out.with_suffix(".json").read_text())
+        kept = [r for r in old["rows"] if r["backend"] not in a.backends.split(",")]
+        limits = limits or old.get("limits")
     from rdher_jax import startup
 
     startup.setup(startup.Startup(ffi=False, compile_cache=False))
     host = harness.host()
-    rows = []
+    rows = list(kept)
     data = {"train_keys": TRAIN_KEYS, "steps": a.steps, "calls": a.calls,
             "timeout_s": a.timeout, "limits": limits, "rows": rows}
 
     def write():
-        harness.write_results(a.out, "Physics backends on this CPU "
-                              "(`experiments/bench_backends.py`)", render(data, host),
+        harness.write_results(a.out, TITLE, render(data, host),
                               data, command=harness.command("bench_backends.py", argv),
                               host=host, echo=False)
 
@@ -213,6 +240,8 @@ def render(data: dict, host: dict) -> list:
               fmt(r, "epoch_compile_s"), fmt(r, "first_epoch_s"), fmt(r, "process_s")]
              for r in rows]),
     ]
+    if data.get("note"):
+        blocks.append(data["note"])
     fs = data.get("from_start")
     if fs:
         ready = (f"{fs['ready_s']:.1f} s" if "ready_s" in fs else fs["end"])

@@ -126,6 +126,7 @@ def _compare(task, warp_envs, seed, policy):
 
 
 @needs_warp
+@pytest.mark.slow  # 1-2.5 minutes a task on one core (Warp's step, compiled per task)
 @pytest.mark.parametrize("task", [*GYMNASIUM_TASK_NAMES, *MOVING_TASK_NAMES])
 def test_warp_matches_gymnasium_robotics(task, warp_envs):
     """From gymnasium-robotics' own reset states, a random and a scripted episode stay within
