@@ -12,12 +12,19 @@ and on the goal. Once the gripper strikes the object, its path depends on every 
 contacts and the deviations grow without bound: in a scripted Push episode (seed 0) the object
 ends 0.4 m from gymnasium-robotics' on the warp backend and on the native backend stepping the
 same warp scene alike (gymnasium-robotics pushes it off the table, the edited scenes do not).
-So from the step on which gymnasium-robotics' object first moves (by more than 1 mm: the
-strike), only the gripper and the goal are compared; a strike changes the object's velocities
-within that very step. Reward and success are compared on
-every compared step whose achieved goal lies farther than ``POS_TOL`` from the success
-threshold (where no deviation within the tolerance can flip them), and agree on at least 90% of
-the compared steps.
+So from the step on which gymnasium-robotics' object is first touched (it moves by more than
+1 mm, or one of its velocities in the observation exceeds 1e-3 per step), only the gripper and
+the goal are compared; a strike changes the object's velocities within that very step. Reward
+and success are compared on every compared step whose achieved goal lies farther than
+``POS_TOL`` from the success threshold (where no deviation within the tolerance can flip
+them), and agree on at least 90% of the compared steps.
+
+A known deviation past that point: when the PickAndPlace fingers close on the box (scripted
+episode, seed 0, step 13), the box starts to spin about its x axis on the warp backend (0.09
+rad per env step at once, 0.5 two steps later), where gymnasium-robotics' stays within 0.005
+and native MuJoCo on the same warp scene within 0.03: it comes from the Warp implementation,
+not from the scene edit (which part of it is not known yet). Grasps on backend=warp are not to
+be trusted until it is understood.
 
 The gymnasium-robotics tasks run from ``env.reset(seed=...)``; the moving-goal tasks run the
 physics of the task each is modelled on (from that task's gymnasium reset) and are compared on
@@ -111,7 +118,9 @@ def _compare(task, warp_envs, seed, policy):
         assert float(st.reward) == success - 1.0
         grip_goal = max(grip_goal, float(np.abs(obs[:3] - o["observation"][:3]).max()),
                         float(np.abs(np.asarray(st.obs["desired_goal"]) - ref_goal).max()))
-        if struck is None and spec.has_object and np.abs(o["observation"][3:6] - obj0).max() > 1e-3:
+        if struck is None and spec.has_object and (
+                np.abs(o["observation"][3:6] - obj0).max() > 1e-3
+                or np.abs(o["observation"][14:20]).max() > 1e-3):  # moved, or set moving
             struck = t
         if struck is not None and t >= struck:
             continue
@@ -168,7 +177,7 @@ def test_contact_buffers_are_sized_and_checked():
     from rdher_jax.envs.fetch import FetchEnv
     from rdher_jax.envs.mjx_backend import ContactCapacity, WarpBackend
 
-    small = FetchEnv(env.setup, WarpBackend(env.setup, worlds=1, capacity=ContactCapacity(
+    small = FetchEnv(env.setup, WarpBackend(env.setup, worlds=4, capacity=ContactCapacity(
         cap.pairs, cap.contacts, 8)), auto_reset=False)
     run = jax.jit(lambda k: rollout(small, lambda _, s: jnp.zeros((4, 4)), k, steps=2))
     with pytest.raises(Exception, match="ran out of buffer.*NEFC"):
