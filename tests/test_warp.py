@@ -13,7 +13,7 @@ contacts and the deviations grow without bound: in a scripted Push episode (seed
 ends 0.4 m from gymnasium-robotics' on the warp backend and on the native backend stepping the
 same warp scene alike (gymnasium-robotics pushes it off the table, the edited scenes do not).
 So from the step on which gymnasium-robotics' object is first touched (it moves by more than
-1 mm, or one of its velocities in the observation exceeds 1e-3 per step), only the gripper and
+1 mm, or its angular velocity in the observation exceeds 1e-3 rad per step), only the gripper and
 the goal are compared; a strike changes the object's velocities within that very step. Reward
 and success are compared on every compared step whose achieved goal lies farther than
 ``POS_TOL`` from the success threshold (where no deviation within the tolerance can flip
@@ -120,7 +120,7 @@ def _compare(task, warp_envs, seed, policy):
                         float(np.abs(np.asarray(st.obs["desired_goal"]) - ref_goal).max()))
         if struck is None and spec.has_object and (
                 np.abs(o["observation"][3:6] - obj0).max() > 1e-3
-                or np.abs(o["observation"][14:20]).max() > 1e-3):  # moved, or set moving
+                or np.abs(o["observation"][17:20]).max() > 1e-3):  # moved, or set turning
             struck = t
         if struck is not None and t >= struck:
             continue
@@ -131,7 +131,7 @@ def _compare(task, warp_envs, seed, policy):
         agree += success == ref_success
         if success != ref_success and abs(d - spec.distance_threshold) > POS_TOL:
             far.append((t, d))
-    return before, grip_goal, agree / max(compared, 1), far, struck
+    return before, grip_goal, agree / compared if compared else 1.0, far, struck
 
 
 @needs_warp
