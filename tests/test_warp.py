@@ -235,7 +235,7 @@ def test_scene_for_warp_only_adds_margin_zero_pairs():
 
 
 @needs_warp
-@pytest.mark.slow  # about two minutes on one core
+@pytest.mark.slow  # 10-15 minutes on one core (Warp's CPU steps at 2 envs)
 def test_fetch_reach_her_learns_on_warp(tmp_path):
     """The native backend's learning check (tests/test_train.py::test_fetch_reach_her_learns)
     on backend=warp: FetchReach with HER reaches >= 0.9 test success within the same 5,000
