@@ -135,7 +135,7 @@ def _compare(task, warp_envs, seed, policy):
 
 
 @needs_warp
-@pytest.mark.slow  # 1-2.5 minutes a task on one core (Warp's step, compiled per task)
+@pytest.mark.slow  # about a minute a task on one core (Warp's step, compiled per task)
 @pytest.mark.parametrize("task", [*GYMNASIUM_TASK_NAMES, *MOVING_TASK_NAMES])
 def test_warp_matches_gymnasium_robotics(task, warp_envs):
     """From gymnasium-robotics' own reset states, a random and a scripted episode stay within
@@ -235,7 +235,7 @@ def test_scene_for_warp_only_adds_margin_zero_pairs():
 
 
 @needs_warp
-@pytest.mark.slow  # 10-15 minutes on one core (Warp's CPU steps at 2 envs)
+@pytest.mark.slow  # about 17 minutes on a shared core (Warp's CPU steps at 2 envs)
 def test_fetch_reach_her_learns_on_warp(tmp_path):
     """The native backend's learning check (tests/test_train.py::test_fetch_reach_her_learns)
     on backend=warp: FetchReach with HER reaches >= 0.9 test success within the same 5,000
