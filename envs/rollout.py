@@ -35,6 +35,10 @@ def rollout(env: Any, policy: Callable[[Any, Any], jax.Array], reset_keys: jax.A
       ``(first_state, last_state, records)``, records stacked along a leading step axis.
     """
     record = record or (lambda s, a, nxt: nxt.reward)
+    worlds = getattr(env.backend, "worlds", None)
+    if worlds is not None and reset_keys.shape[0] > worlds:
+        raise ValueError(f"{env.backend.name} backend built for {worlds} envs, asked to step "
+                         f"{reset_keys.shape[0]}: make_env(..., worlds={reset_keys.shape[0]})")
     v_step = jax.vmap(env.step)
     first = jax.vmap(env.reset)(reset_keys)
 
@@ -46,4 +50,7 @@ def rollout(env: Any, policy: Callable[[Any, Any], jax.Array], reset_keys: jax.A
     if step_keys is None:
         steps = env.episode_length if steps is None else steps
     last, ys = jax.lax.scan(step, first, step_keys, length=steps if step_keys is None else None)
+    check = getattr(env.backend, "check", None)
+    if check is not None:  # the warp backend: its buffers' overflow is an error
+        check(last.data)
     return first, last, ys

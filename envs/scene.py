@@ -5,6 +5,8 @@
 - ``variant="original"``: the unedited gymnasium-robotics MJCF, exactly as ``Fetch*-v4`` loads it.
 - ``variant="mjx"``: the same scene edited with ``mujoco.MjSpec`` so that ``mjx.put_model``
   accepts it (see ``_edit_for_mjx`` for every edit and why).
+- ``variant="warp"``: the ``mjx`` scene with the further edits MJX's Warp implementation
+  (``mjx.put_model(m, impl="warp")``) needs (see ``_edit_for_warp``).
 
 The edits are also exposed one by one in ``EDITS`` so that their effect on the dynamics can be
 measured separately (``experiments/scene_edits.py``).
@@ -21,7 +23,7 @@ import numpy as np
 from .notices import quiet_gymnasium_robotics, quiet_mjx
 from .registry import task_spec
 
-VARIANTS = ("original", "mjx")
+VARIANTS = ("original", "mjx", "warp")
 
 # Robot geoms that keep colliding. In native rollouts (8 scripted + 8 random episodes per task,
 # experiments/scene_edits.py) the finger boxes and the gripper link touch the table, floor and
@@ -62,13 +64,15 @@ def load_spec(task: str) -> mujoco.MjSpec:
 
 
 def load_model(task: str, variant: str = "original") -> mujoco.MjModel:
-    """Compile the task's scene; ``variant`` is ``"original"`` or ``"mjx"``."""
+    """Compile the task's scene; ``variant`` is ``"original"``, ``"mjx"`` or ``"warp"``."""
     if variant not in VARIANTS:
         raise ValueError(f"unknown scene variant {variant!r}; valid: {', '.join(VARIANTS)}")
     if variant == "original":
         return mujoco.MjModel.from_xml_path(asset_path(task))
     spec = load_spec(task)
     _edit_for_mjx(spec, task)
+    if variant == "warp":
+        _edit_for_warp(spec, task)
     return spec.compile()
 
 
@@ -214,6 +218,40 @@ def zero_mesh_margins(spec: mujoco.MjSpec, task: str) -> None:
         _add_matching_pair(spec, model, int(g1), int(g2), margin=0.0)
 
 
+def zero_box_margins(spec: mujoco.MjSpec, task: str) -> None:
+    """Zero the margin of every dynamic contact pair of two boxes or meshes (Warp's rule).
+
+    MJX's Warp implementation has no margin for box-box, box-mesh or mesh-mesh contacts when
+    multi-contact CCD is on (``put_model(impl="warp")`` raises). After the mjx edits these are
+    the finger boxes (margin 0.001) against the table box and a box object: each such pair gets
+    an explicit margin-0 ``<pair>`` with the mixed contact parameters (as ``zero_mesh_margins``
+    does for mesh pairs), so the fingers keep their margin against the floor and the base pads
+    keep theirs (sphere-plane pairs Warp supports with a margin). Physics: a finger's contact
+    with the table or the box becomes active at contact instead of 1 mm before it, and the
+    soft contact settles with about 1 mm less clearance. MuJoCo's multi-contact CCD itself
+    (on by default, as in gymnasium-robotics' scenes) is kept.
+    """
+    del task
+    quiet_mjx()
+    from mujoco.mjx._src import collision_driver
+
+    solid = (mujoco.mjtGeom.mjGEOM_BOX, mujoco.mjtGeom.mjGEOM_MESH)
+    # An explicit pair names its geoms: name the unnamed ones (the table's box) by their body.
+    named: dict[str, int] = {}
+    for geom in spec.geoms:
+        if not geom.name:
+            body = _geom_body(geom)
+            geom.name = f"{body}:geom{named.get(body, 0)}"
+            named[body] = named.get(body, 0) + 1
+    model = spec.copy().compile()
+    for g1, g2, ip in list(collision_driver.geom_pairs(model)):
+        if ip != -1 or not all(t in solid for t in model.geom_type[[g1, g2]]):
+            continue
+        if not model.geom_margin[[g1, g2]].any():
+            continue
+        _add_matching_pair(spec, model, int(g1), int(g2), margin=0.0)
+
+
 def _add_matching_pair(
     spec: mujoco.MjSpec,
     model: mujoco.MjModel,
@@ -284,4 +322,26 @@ def _edit_for_mjx(spec: mujoco.MjSpec, task: str) -> None:
     (experiments/results/scene_edits.md, section 3).
     """
     for edit in EDITS.values():
+        edit(spec, task)
+
+
+# The edits of the ``warp`` scene, applied after all of ``EDITS``.
+WARP_EDITS: dict[str, Callable[[mujoco.MjSpec, str], None]] = {
+    "box_margins": zero_box_margins,
+}
+
+
+def _edit_for_warp(spec: mujoco.MjSpec, task: str) -> None:
+    """Edits that make the ``mjx`` scene loadable by ``mjx.put_model(m, impl="warp")``.
+
+    1. ``zero_box_margins``: Warp refuses a non-zero margin on a box-box, box-mesh or mesh-mesh
+       pair while multi-contact CCD is on; after the mjx edits only the finger boxes (margin
+       0.001) against the table and a box object remain. Those pairs get an explicit margin-0
+       ``<pair>``: the contact becomes active at touch rather than 1 mm before it.
+
+    Everything else of the mjx scene stays, multi-contact CCD included (gymnasium-robotics'
+    scenes run with it). The explicit pairs are not checked by Warp and keep their margins
+    (the base pads' sphere-plane pairs).
+    """
+    for edit in WARP_EDITS.values():
         edit(spec, task)

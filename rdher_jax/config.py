@@ -34,8 +34,8 @@ DHER_ALGOS: tuple[str, ...] = ("dher", "rdher")
 # The default ring of DHER's recorded matches holds at least this many (the authors keep every
 # match of the buffer; 65536 covered every FetchPush run measured at the paper's settings).
 MIN_DHER_RECORDS = 65536
-BACKENDS: tuple[str, ...] = ("auto", "mujoco", "mjx")
-SCENES: tuple[str, ...] = ("auto", "original", "mjx")
+BACKENDS: tuple[str, ...] = ("auto", "mujoco", "mjx", "warp")
+SCENES: tuple[str, ...] = ("auto", "original", "mjx", "warp")
 TERMINAL_RULES: tuple[str, ...] = ("none", "success", "exact")
 COMPUTE_DTYPES: tuple[str, ...] = ("float32", "bfloat16")
 PHYSICS_CALLS: tuple[str, ...] = ("ffi", "callback")
@@ -168,9 +168,10 @@ class Config:
     )
     buffer_size: int = _f(1_000_000, "replay buffer capacity in transitions")
     backend: str = _f(
-        "auto", "physics: auto|mujoco|mjx (auto: mjx when JAX sees a GPU, else mujoco)"
+        "auto", "physics: auto|mujoco|mjx|warp (auto: warp on an NVIDIA GPU with Warp "
+        "installed, else mjx on a GPU, else mujoco)"
     )
-    scene: str = _f("auto", "scene model: auto|original|mjx")
+    scene: str = _f("auto", "scene model: auto|original|mjx|warp")
     overlap: bool = _f(
         False, "backend=mujoco: collect each cycle's episodes on a second host device while the "
         "learner trains on the stored ones, so a cycle costs about the larger of its rollout "

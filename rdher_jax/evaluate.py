@@ -1,4 +1,4 @@
-"""``python -m rdher_jax.evaluate <run dir> [episodes=N] [backend=mujoco|mjx] [scene=...]
+"""``python -m rdher_jax.evaluate <run dir> [episodes=N] [backend=mujoco|mjx|warp] [scene=...]
 [video=out.gif|out.mp4 [video_episodes=K] [width=W] [height=H]]``.
 
 Loads the run's best policy and prints its test success over N deterministic episodes, on the
@@ -21,7 +21,7 @@ from .startup import Startup, setup
 __all__ = ["evaluate", "main", "parse"]
 
 USAGE = ("usage: python -m rdher_jax.evaluate <run dir> [episodes=100] [seed=0] "
-         "[backend=auto|mujoco|mjx] [scene=auto|original|mjx] "
+         "[backend=auto|mujoco|mjx|warp] [scene=auto|original|mjx|warp] "
          "[video=out.gif|out.mp4] [video_episodes=3] [width=480] [height=480]")
 VIDEO_OPTS = ("video_episodes", "width", "height")
 MIN_SIZE, MAX_SIZE = 64, 4096

@@ -39,23 +39,34 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from .config import RESUMABLE_KEYS, TRACED_KEYS, Config, ConfigError, preset_sets_overlap, to_yaml
-from .envs import default_backend, make_env
+from .envs import default_backend, make_env, warp_available
 from .program import make_program
 
 
 def resolve_backend(cfg: Config) -> tuple[str, str]:
     """The physics backend and scene a config asks for, with ``auto`` decided here."""
     backend = default_backend() if cfg.backend == "auto" else cfg.backend
-    scene = cfg.scene if cfg.scene != "auto" else ("original" if backend == "mujoco" else "mjx")
+    scene = cfg.scene if cfg.scene != "auto" else {"mujoco": "original"}.get(backend, backend)
     if backend == "mjx" and scene != "mjx":
         raise ConfigError("backend=mjx needs scene=mjx (mjx.put_model rejects the original)")
+    if backend == "warp":
+        why = warp_available()
+        if why:
+            raise ConfigError(why)
+        if scene != "warp":
+            raise ConfigError("backend=warp needs scene=warp (mjx.put_model(impl='warp') "
+                              "rejects the others)")
     return backend, scene
 
 
-def build(cfg: Config):
-    """Env and training program (``program.make_program``) of a resolved config."""
+def build(cfg: Config, runs: int = 1):
+    """Env and training program (``program.make_program``) of a resolved config; ``runs``:
+    how many such runs one program steps at once (the warp backend sizes its buffers for
+    them)."""
     backend, scene = resolve_backend(cfg)
     extra = {}
+    if backend == "warp":
+        extra["worlds"] = runs * max(cfg.num_envs, cfg.n_test_rollouts)
     if backend == "mujoco":
         # With overlap the physics has a host device, and so a core, of its own: a second
         # physics thread would take the learner's.
@@ -410,7 +421,8 @@ def executor_for(runs: Sequence[Config], devices: Sequence[Any] | None = None,
     key = (to_yaml(shared), len(runs), tuple(str(d) for d in devices), vmapped)
     if _LAST_PROGRAM.get("key") != key:
         _LAST_PROGRAM.clear()  # one at a time: a program holds its env and compiled code
-        env, program = build(runs[0])
+        # Padded runs (see the module docstring) are stepped too.
+        env, program = build(runs[0], runs=-(-len(runs) // len(devices)) * len(devices))
         if overlap is not None and env.backend.name != "mujoco":
             raise ConfigError(f"overlap=true needs backend=mujoco (the native physics), not "
                               f"{env.backend.name}{_preset_overlap_hint(runs[0])}")

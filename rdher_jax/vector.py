@@ -201,7 +201,7 @@ def make_vector_env(name: str, num_envs: int, backend: str | None = None,
       name: as ``rdher_jax.make_env`` (FetchReach, FetchPush, FetchSlide, FetchPickAndPlace,
         with or without ``-v4``, or a moving-goal task).
       num_envs: envs stepped together (one batched, jitted step).
-      backend: ``"mujoco"``, ``"mjx"`` or None for the default (as ``make_env``).
+      backend: ``"mujoco"``, ``"mjx"``, ``"warp"`` or None for the default (as ``make_env``).
       seed: seed of the first ``reset()`` called without one (a ``reset(seed=...)`` overrides
         it); None draws one at random.
       **env_kwargs: ``scene``, ``num_threads``, ``goal_speed``, passed to ``make_env``.
@@ -212,6 +212,7 @@ def make_vector_env(name: str, num_envs: int, backend: str | None = None,
 
     if "auto_reset" in env_kwargs:
         raise ValueError("make_vector_env always auto-resets (SAME_STEP); drop auto_reset")
+    env_kwargs.setdefault("worlds", num_envs)  # the warp backend's buffers (others ignore it)
     return FetchVectorEnv(make_env(name, backend, **env_kwargs), num_envs, seed=seed)
 
 

@@ -784,7 +784,8 @@ def test_bench_harness_writes_the_same_figures_to_markdown_and_json(tmp_path):
         "python experiments/bench_x.py --out b.md 'k=v w'")
 
 
-@pytest.mark.parametrize("script", ["bench_cycle", "bench_envs", "bench_gpu", "bench_overlap",
+@pytest.mark.parametrize("script", ["bench_backends", "bench_cycle", "bench_envs", "bench_gpu",
+                                    "bench_gpu_warp", "bench_overlap",
                                     "bench_processes", "bench_relabel", "bench_start",
                                     "bench_sweep", "bench_train", "bench_xla_flags"])
 def test_bench_scripts_import_without_side_effects(script, monkeypatch):
@@ -868,3 +869,22 @@ def test_solve_profile_runs_the_tasks_recipe_and_budget(tmp_path):
                                   "progress=false"]))
         assert dataclasses.replace(cfg, run_dir=None, seed=0) == dataclasses.replace(
             one, run_dir=None, seed=0), job.task
+def test_bench_gpu_warp_runs_tiny_on_a_cpu(tmp_path):
+    """The device check (experiments/bench_gpu_warp.py) at tiny sizes on this CPU, so that it
+    cannot rot between the rare runs on a GPU: every stage ends and leaves its figures."""
+    from rdher_jax.envs import warp_available  # noqa: PLC0415
+
+    if warp_available():
+        pytest.skip(warp_available())
+    out = tmp_path / "gpu.md"
+    proc = subprocess.run([sys.executable, str(EXP / "bench_gpu_warp.py"), "--tiny", "--out",
+                           str(out)], capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    res = json.loads(out.with_suffix(".json").read_text())
+    env, push = res["stages"]["env"], res["stages"]["push"]
+    assert env["end"] == "ok" and push["end"] == "ok", (env["end"], push["end"])
+    assert [r["batch"] for r in env["rows"].values()] == [4, 8, 16]
+    assert all(r["steps_per_s"] > 0 and r["compile_s"] > 0 for r in env["rows"].values())
+    assert push["compile_s"] > 0 and len(push["epochs"]) == 1
+    assert push["epochs"][0]["env_steps"] == 4 * 50
+    assert "Warp env steps" in out.read_text()
