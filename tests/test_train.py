@@ -93,8 +93,8 @@ def test_resume_after_sigkill_equals_uninterrupted(tmp_path):
 def test_nan_loss_stops_run_and_keeps_last_checkpoint(tmp_path, monkeypatch):
     real_build = executor.build
 
-    def build(cfg):
-        env, trainer = real_build(cfg)
+    def build(cfg, **kw):
+        env, trainer = real_build(cfg, **kw)
 
         def epoch(ts, hp):
             ts, m = trainer.epoch(ts, hp)
@@ -119,8 +119,8 @@ def test_stop_success_stops_after_the_window_and_resumes(tmp_path, monkeypatch):
     schedule = jax.numpy.array([0.0, 0.5, 1.0, 0.75, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0])
     real_build = executor.build
 
-    def build(cfg):
-        env, trainer = real_build(cfg)
+    def build(cfg, **kw):
+        env, trainer = real_build(cfg, **kw)
 
         def epoch(ts, hp):
             ts, m = trainer.epoch(ts, hp)  # ts.epoch: the epochs done, this one included
