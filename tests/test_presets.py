@@ -81,14 +81,16 @@ def test_override_back_to_the_default_value() -> None:
     assert (cfg.num_envs, cfg.policy_delay) == (1, 2)
 
 
-def documented_budgets() -> dict[str, tuple[int, int]]:
-    """{task: (epochs, env steps)} from the per-task budget table under the preset's table."""
+def documented_budgets() -> dict[str, tuple[int, int, dict]]:
+    """{task: (epochs, env steps, {key: value})} from the per-task table under the preset's."""
     text = DOC.read_text(encoding="utf-8")
-    table = text.split("| task | `epochs` under `preset=fast` | env steps |", 1)[1]
+    table = text.split("| task | `epochs` under `preset=fast` | env steps | other keys |", 1)[1]
     rows = {}
     for line in table.split("\n\n", 1)[0].strip().splitlines()[1:]:
-        task, epochs, steps = (c.strip() for c in line.strip().strip("|").split("|"))
-        rows[task] = (int(epochs), int(steps.replace(",", "")))
+        task, epochs, steps, other = (c.strip() for c in line.strip().strip("|").split("|"))
+        keys = dict(kv.split("=") for kv in re.findall(r"`(\w+=[^`]+)`", other))
+        rows[task] = (int(epochs), int(steps.replace(",", "")),
+                      {k: _value(v) for k, v in keys.items()})
     return rows
 
 
@@ -97,15 +99,18 @@ def test_fast_budget_per_task_is_the_documented_table() -> None:
     from rdher_jax.tasks import TASKS
 
     doc = documented_budgets()
-    assert doc == {t: (task.preset_values["fast"]["epochs"], doc[t][1])
+    assert doc == {t: (task.preset_values["fast"]["epochs"], doc[t][1],
+                       {k: v for k, v in task.preset_values["fast"].items() if k != "epochs"})
                    for t, task in TASKS.items() if "fast" in task.preset_values}
-    for task, (epochs, steps) in doc.items():
+    for task, (epochs, steps, other) in doc.items():
         for argv in (["preset=fast", f"env={task}"], [f"env={task}", "preset=fast"]):
             cfg = resolve(parse_args(argv))
             assert cfg.epochs == epochs, (argv, cfg.epochs)
             assert cfg.epochs * cfg.n_cycles * cfg.num_envs * episode_length(cfg) == steps
-        # An explicit epochs wins, and the preset's other values are the same for every task.
+        assert {k: getattr(cfg, k) for k in other} == other
+        # An explicit key wins, and the preset's own values are the same for every task.
         assert parse_args(["preset=fast", f"env={task}", "epochs=3"]).epochs == 3
+        assert parse_args(["preset=fast", f"env={task}", "n_critics=1"]).n_critics == 1
         assert parse_args(["preset=fast", f"env={task}"]).n_batches == PRESETS["fast"].values[
             "n_batches"]
     # A task without its own budget keeps its default epochs.
