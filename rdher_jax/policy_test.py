@@ -17,6 +17,7 @@ from . import render
 from .checkpoint import Checkpointer
 from .config import ConfigError, from_yaml
 from .render import DEFAULT_SIZE
+from .runlog import write_text_atomic
 
 # Keys of a run's config that do not change the evaluation program: the runs of one sweep (seeds,
 # λ pairs) share one build and one compilation (experiments test every run of a sweep).
@@ -86,9 +87,7 @@ def retest(run_dir: Path, episodes: int) -> str:
     """Retests the best policy of ``run_dir`` on ``episodes`` new episodes (seed 0, as
     ``python -m rdher_jax.evaluate``), writes ``retest.json`` and returns the line to print."""
     r = evaluate(run_dir, episodes)
-    tmp = run_dir / (RETEST_FILE + ".tmp")
-    tmp.write_text(json.dumps(r, indent=1) + "\n")
-    tmp.replace(run_dir / RETEST_FILE)
+    write_text_atomic(run_dir / RETEST_FILE, json.dumps(r, indent=1) + "\n")
     won = round(r["success"] * episodes)
     return (f"retest: the best policy (epoch {r['epoch']}) succeeds on {won} of {episodes} new "
             f"episodes ({100 * r['success']:.0f}%)")

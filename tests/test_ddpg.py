@@ -9,7 +9,7 @@ import optax
 import pytest
 from helpers import update_many
 
-from rdher_jax.ddpg import DDPGParams, DDPGState, critic_target, make_ddpg
+from rdher_jax.ddpg import DDPGParams, DDPGState, critic_target, make_ddpg, target_subset
 from rdher_jax.relabel import Transition
 
 OBS, GOAL, ACT = 4, 3, 2
@@ -588,7 +588,7 @@ def test_ensemble_critics_are_distinct_and_shaped():
 def test_target_subset_draws_distinct_indices():
     seen = set()
     for i in range(40):
-        idx = np.asarray(jax.random.choice(jax.random.key(i), 5, (2,), replace=False))
+        idx = np.asarray(target_subset(jax.random.key(i), 5, 2))
         assert len(set(idx.tolist())) == 2 and idx.min() >= 0 and idx.max() < 5
         seen.add(tuple(sorted(idx.tolist())))
     assert len(seen) >= 8  # of the 10 pairs
@@ -610,7 +610,7 @@ def test_ensemble_losses_match_numpy():
     q_next = np.stack([_np_critic(_member(state.target_critic_params, e), o2, g2, a2, MAX_U)
                        for e in range(3)])
     # The subset the learner draws: the second half of the critic loss's key split.
-    idx = np.asarray(jax.random.choice(jax.random.split(key)[1], 3, (2,), replace=False))
+    idx = np.asarray(target_subset(jax.random.split(key)[1], 3, 2))
     lam = np.where(np.asarray(batch.hindsight), 0.5, 1.0)
     y = np.clip(lam * np.asarray(batch.reward) + 0.9 * q_next[idx].min(0), -lam / 0.1, 0.0)
     a = np.asarray(batch.action, np.float64)
