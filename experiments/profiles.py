@@ -404,7 +404,7 @@ def best_policy_eval(run_dir: Path, seed: int, episodes: int,
     from rdher_jax.checkpoint import Checkpointer
     from rdher_jax.evaluate import evaluate
 
-    best = Checkpointer(run_dir, read_only=True).best_epoch()
+    best = Checkpointer(run_dir, read_only=True).policy_epoch()
     if best is None:
         return None
     key = {"epoch": best, "episodes": episodes, "seed": EVAL_SEED + seed}

@@ -4,11 +4,15 @@ Layout under ``<run_dir>/checkpoints``::
 
     latest/<epoch>/{state,meta}   full training state (networks, optimisers, replay buffer, keys)
     best/<epoch>/{state,meta}     the policy of the best test epoch so far
+    candidates/<epoch>/...        select_top > 1: the policies of the select_top best test epochs
+    selected/<epoch>/...          select_top > 1: the one of them that did best on the selection
+                                  episodes at the end of training (the run's policy)
 
-Each directory keeps one step. Orbax writes a step into ``<epoch>.orbax-checkpoint-tmp-<t>``
-and renames it to ``<epoch>`` once complete (atomic on POSIX), so an integer-named directory is
-always a finished save. A process killed mid-save leaves only a temporary directory, which is
-ignored on restore and removed by the next writer; the previous step stays restorable.
+Each directory but ``candidates`` keeps one step. Orbax writes a step into
+``<epoch>.orbax-checkpoint-tmp-<t>`` and renames it to ``<epoch>`` once complete (atomic on
+POSIX), so an integer-named directory is always a finished save. A process killed mid-save leaves
+only a temporary directory, which is ignored on restore and removed by the next writer; the
+previous step stays restorable.
 """
 
 import contextlib
@@ -52,8 +56,9 @@ def _step_dirs(directory: Path) -> dict[int, Path]:
     return {int(p.name): p for p in directory.iterdir() if p.is_dir() and p.name.isdigit()}
 
 
-def _tidy(directory: Path) -> None:
-    """Remove unfinished saves, interrupted deletions and steps older than the newest.
+def _tidy(directory: Path, keep_all: bool = False) -> None:
+    """Remove unfinished saves, interrupted deletions and (unless ``keep_all``) steps older
+    than the newest.
 
     Orbax deletes an old step only after the new one is renamed into place, so the highest
     integer-named step is complete and any lower one is a leftover of an interrupted deletion.
@@ -61,6 +66,8 @@ def _tidy(directory: Path) -> None:
     for p in directory.iterdir():
         if p.name.startswith(_TRASH_PREFIX) or _TMP_MARK in p.name:
             shutil.rmtree(p, ignore_errors=True)
+    if keep_all:
+        return
     steps = _step_dirs(directory)
     for step in sorted(steps)[:-1]:
         _remove(steps[step])
@@ -148,16 +155,19 @@ def _options(collective: bool) -> ocp.options.MultiprocessingOptions:
 
 
 class _Slot:
-    """One checkpoint directory holding a single step (``latest`` or ``best``)."""
+    """One checkpoint directory holding a single step (``latest``, ``best``, ``selected``), or
+    any number of them (``keep_all``: ``candidates``, whose steps its owner removes)."""
 
-    def __init__(self, directory: Path, read_only: bool, collective: bool = False) -> None:
+    def __init__(self, directory: Path, read_only: bool, collective: bool = False,
+                 keep_all: bool = False) -> None:
         self.directory = directory
         self.read_only = read_only
         self.collective = collective
+        self.keep_all = keep_all
         if not read_only:
             directory.mkdir(parents=True, exist_ok=True)
             if jax.process_index() == 0:  # one tidier of a directory all processes share
-                _tidy(directory)
+                _tidy(directory, keep_all)
         self._mgr: ocp.CheckpointManager | None = None
 
     @property
@@ -165,7 +175,7 @@ class _Slot:
         # Created lazily: a read-only slot may not exist yet, and orbax would refuse it.
         if self._mgr is None:
             options = ocp.CheckpointManagerOptions(
-                preservation_policy=checkpoint_managers.LatestN(n=1),
+                preservation_policy=checkpoint_managers.LatestN(n=None if self.keep_all else 1),
                 enable_async_checkpointing=False,  # "saved" must mean "on disk"
                 # Read-only is enforced here rather than with orbax's read_only option,
                 # which logs warnings on every open.
@@ -213,6 +223,8 @@ class _Slot:
         # Steps at or after `step` come from a timeline abandoned by a resume; orbax would
         # silently skip saving an existing or older step, so they go first.
         stale = [s for s in self.mgr.all_steps() if s >= step]
+        if self.keep_all:  # a step may be saved below a kept one
+            stale = [s for s in stale if s == step]
         for s in stale:
             if jax.process_index() == 0:  # a collective slot's directory is shared
                 _remove(self.directory / str(s))
@@ -234,8 +246,19 @@ class _Slot:
         restored = self.mgr.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))
         return step, dict(restored.meta)
 
-    def restore(self, template: Any) -> tuple[int, Any, dict]:
-        step = self.latest()
+    def steps(self) -> list[int]:
+        if not self.directory.is_dir():
+            return []
+        self.latest()  # reloads a read-only slot
+        return sorted(self.mgr.all_steps())
+
+    def remove(self, step: int) -> None:
+        self._check_writable()
+        _remove(self.directory / str(step))
+        self.mgr.reload()
+
+    def restore(self, template: Any, step: int | None = None) -> tuple[int, Any, dict]:
+        step = self.latest() if step is None else step
         if step is None:
             raise CheckpointError(f"no checkpoint in {self.directory}")
         template = _arrays(template)
@@ -277,7 +300,7 @@ class Checkpointer:
 
     def __init__(self, run_dir: str | Path, read_only: bool = False, latest: bool = True,
                  best: bool = True, latest_name: str = "latest",
-                 collective: bool = False) -> None:
+                 collective: bool = False, select: bool = False) -> None:
         self.directory = Path(run_dir) / "checkpoints"
         # A sweep keeps its stacked latest state in its own directory and each run's best
         # policy in the run's, so either slot can be left out. ``collective``: the latest state
@@ -286,7 +309,14 @@ class Checkpointer:
         self._latest = (_Slot(self.directory / latest_name, read_only, collective)
                         if latest else None)
         self._best = _Slot(self.directory / "best", read_only) if best else None
-        self._slots = [s for s in (self._latest, self._best) if s is not None]
+        # The policy choice at the end of training (select_top > 1): written by a run that
+        # keeps candidates (``select``), read by any reader (absent: the best policy is it).
+        with_select = best and (select or read_only)
+        self._candidates = (_Slot(self.directory / "candidates", read_only, keep_all=True)
+                            if with_select else None)
+        self._selected = _Slot(self.directory / "selected", read_only) if with_select else None
+        self._slots = [s for s in (self._latest, self._best, self._candidates, self._selected)
+                       if s is not None]
 
     def _slot(self, name: str) -> _Slot:
         slot = getattr(self, f"_{name}")
@@ -315,6 +345,46 @@ class Checkpointer:
         found = self._slot("best").meta()
         return None if found is None else found[1]
 
+    def save_candidate(self, epoch: int, policy: Any, meta: Mapping[str, Any]) -> None:
+        """Keep the policy of ``epoch`` among the candidates for the final choice."""
+        self._slot("candidates").save(epoch, policy, meta)
+
+    def candidates(self) -> dict[int, dict]:
+        """The kept candidates' metadata by epoch ({} where none are kept)."""
+        slot = self._candidates
+        if slot is None:
+            return {}
+        return {s: slot.meta(s)[1] for s in slot.steps()}
+
+    def drop_candidate(self, epoch: int) -> None:
+        self._slot("candidates").remove(epoch)
+
+    def restore_candidate(self, epoch: int, template: Any) -> tuple[int, Any, dict]:
+        return self._slot("candidates").restore(template, epoch)
+
+    def save_selected(self, epoch: int, policy: Any, meta: Mapping[str, Any]) -> None:
+        """Save the policy chosen among the candidates at the end of training."""
+        self._slot("selected").save(epoch, policy, meta)
+
+    def clear_selected(self) -> None:
+        """Forget the choice (a resumed run trains on and chooses again when it ends)."""
+        slot = self._slot("selected")
+        for step in slot.steps():
+            slot.remove(step)
+
+    def policy_epoch(self) -> int | None:
+        """Epoch of the run's policy: the selected one where a choice was made, else the best
+        test epoch's; None without either."""
+        if self._selected is not None and self._selected.latest() is not None:
+            return self._selected.latest()
+        return self.best_epoch()
+
+    def restore_policy(self, template: Any) -> tuple[int, Any, dict]:
+        """``(epoch, policy, meta)`` of the run's policy (see :meth:`policy_epoch`)."""
+        if self._selected is not None and self._selected.latest() is not None:
+            return self._selected.restore(template)
+        return self.restore_best(template)
+
     def restore_latest(self, template: Any) -> tuple[int, Any, dict]:
         """``(epoch, state, meta)`` of the latest checkpoint, restored into ``template``'s
         structure, shapes and dtypes (a mismatch raises CheckpointError)."""
@@ -328,10 +398,9 @@ class Checkpointer:
         """Delete checkpoints newer than ``epoch`` (a resume from ``epoch`` abandons them)."""
         for slot in self._slots:
             slot._check_writable()
-            step = slot.latest()
-            if step is not None and step > epoch:
-                _remove(slot.directory / str(step))
-                slot.mgr.reload()
+            for step in slot.steps():
+                if step > epoch:
+                    slot.remove(step)
 
     def close(self) -> None:
         """Release orbax's resources; the object may be used again afterwards."""

@@ -54,6 +54,8 @@ RESUMABLE_KEYS: frozenset[str] = frozenset(
         "epochs",
         "n_test_rollouts",
         "retest",
+        "select_top",
+        "select_episodes",
         "backend",
         "run_dir",
         "resume",
@@ -166,6 +168,14 @@ class Config:
         0, "after training, the best policy is retested on this many new deterministic "
         "episodes (python -m rdher_jax.evaluate), printed and written to retest.json; 0: none"
     )
+    select_top: int = _f(
+        1, "the run's policy is chosen when training ends among the policies of its select_top "
+        "best test epochs (ties: the later), kept as it trains: each is tested on the same "
+        "select_episodes new episodes and the best of them is the run's policy (checkpoints/"
+        "selected), the one evaluate and retest then test on episodes of their own. 1: the best "
+        "test epoch's policy (baselines)"
+    )
+    select_episodes: int = _f(100, "select_top > 1: episodes each candidate policy is tested on")
     buffer_size: int = _f(1_000_000, "replay buffer capacity in transitions")
     backend: str = _f(
         "auto", "physics: auto|mujoco|mjx|warp (auto: warp on an NVIDIA GPU with Warp "
@@ -425,6 +435,9 @@ def validate(cfg: Config) -> Config:
         _check(v is None or v >= 1, f"{name} must be a positive integer, got {v}")
     _check(cfg.replay_k >= 0, f"replay_k must be >= 0, got {cfg.replay_k}")
     _check(cfg.retest >= 0, f"retest must be >= 0, got {cfg.retest}")
+    _check(cfg.select_top >= 1, f"select_top must be >= 1, got {cfg.select_top}")
+    _check(cfg.select_episodes >= 1,
+           f"select_episodes must be >= 1, got {cfg.select_episodes}")
     _check(cfg.target_every >= 0, f"target_every must be >= 0, got {cfg.target_every}")
     _check(cfg.target_critics is None or cfg.target_critics <= cfg.n_critics,
            f"target_critics ({cfg.target_critics}) must not exceed n_critics ({cfg.n_critics})")

@@ -140,9 +140,9 @@ def drive(plan: Plan, argv: Sequence[str] = (), prog: str = "",
             now = time.perf_counter()
             dt, t_prev = now - t_prev, now
             rows = progress.take(epoch, m, now - t_start, out.latest, log)
-            new_best = progress.observe(rows, cfg.stop_window)
+            new_best, new_kept = progress.observe(rows, cfg.stop_window, cfg.select_top)
             stop = progress.stop_met(cfg)
-            out.write(rows, new_best, lambda ts=ts: ex.host(ts.ddpg))
+            out.write(rows, new_best, lambda ts=ts: ex.host(ts.ddpg), new_kept)
             if stop or is_checkpoint_epoch(cfg, epoch):
                 out.save_latest(epoch, ex.latest_state(ts, plan.stacked_latest),
                                 progress.meta(now - t_start))
@@ -156,6 +156,7 @@ def drive(plan: Plan, argv: Sequence[str] = (), prog: str = "",
     finally:
         out.flush()
     bar.close()
+    out.select(progress, log)
     if stopped is not None and distributed.is_main():
         log(f"stopped after epoch {stopped}: the mean test success of the last "
             f"{cfg.stop_window} epochs reached stop_success={cfg.stop_success:g}"

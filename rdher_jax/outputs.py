@@ -101,6 +101,12 @@ class Progress:
     recent: list[list[float]]
     diverged: dict[str, int] = field(default_factory=dict)
     wall: float = 0.0
+    # select_top > 1: the test successes of each run's kept candidate policies
+    kept: list[list[float]] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        if not self.kept:
+            self.kept = [[] for _ in self.names]
 
     @classmethod
     def fresh(cls, names: Sequence[str]) -> Progress:
@@ -129,18 +135,22 @@ class Progress:
             diverged = {k: int(v) for k, v in meta.get("diverged", {}).items()
                         if int(v) <= epoch}
             wall = float(meta["wall_time"])
-            if len(best) != len(names) or len(recent) != len(names):
+            kept = meta.get("kept_success")  # absent before select_top existed
+            kept = ([[] for _ in names] if kept is None
+                    else [[float(x) for x in k] for k in kept])
+            if len(best) != len(names) or len(recent) != len(names) or len(kept) != len(names):
                 raise ValueError(f"{len(best)} runs' bests for {len(names)} runs")
         except (KeyError, TypeError, ValueError, AttributeError, IndexError) as e:
             raise ConfigError(f"cannot resume {directory}: its checkpoint's metadata is "
                               f"damaged ({type(e).__name__}: {e})") from None
-        return cls(names, best, recent, diverged, wall)
+        return cls(names, best, recent, diverged, wall, kept)
 
     def meta(self, wall: float) -> dict[str, Any]:
         """The latest checkpoint's metadata (one format for a run and a sweep)."""
         return {"best_success": list(self.best), "wall_time": round(wall, 3),
                 "diverged": dict(self.diverged), "runs": list(self.names),
-                "recent_success": [list(r) for r in self.recent]}
+                "recent_success": [list(r) for r in self.recent],
+                "kept_success": [list(k) for k in self.kept]}
 
     def live(self) -> list[int]:
         return [i for i, name in enumerate(self.names) if name not in self.diverged]
@@ -169,17 +179,27 @@ class Progress:
                 f"stopped. {last_good_checkpoint(latest)}")
         return rows
 
-    def observe(self, rows: Mapping[int, Mapping[str, Any]], window: int) -> list[int]:
-        """Take the epoch's test successes; returns the runs with a new best policy. Ties go
-        to the later epoch, as baselines saves its best policy."""
-        new_best = []
+    def observe(self, rows: Mapping[int, Mapping[str, Any]], window: int,
+                top: int = 1) -> tuple[list[int], list[int]]:
+        """Take the epoch's test successes; returns the runs with a new best policy and, with
+        ``top`` > 1, the runs whose policy joins their ``top`` kept candidates (a new best
+        always does). Ties go to the later epoch, as baselines saves its best policy: an
+        epoch as good as the worst kept candidate replaces it."""
+        new_best, new_kept = [], []
         for i, row in rows.items():
             success = float(row["test_success"])
             if success >= self.best[i]:
                 new_best.append(i)
                 self.best[i] = success
+            if top > 1:
+                kept = self.kept[i]
+                if len(kept) < top or success >= min(kept):
+                    new_kept.append(i)
+                    kept.append(success)
+                    if len(kept) > top:
+                        kept.remove(min(kept))
             self.recent[i] = (self.recent[i] + [success])[-window:]
-        return new_best
+        return new_best, new_kept
 
     def stop_met(self, cfg: Config) -> bool:
         """Whether ``stop_success`` is met on every live run (:func:`reached_stop`)."""
@@ -226,7 +246,7 @@ class RunOutputs:
     def __init__(self, cfg: Config, name: str = "") -> None:
         self.cfg = cfg
         self.run_dir = Path(cfg.run_dir)
-        self.ckpt = Checkpointer(self.run_dir, latest=False)
+        self.ckpt = Checkpointer(self.run_dir, latest=False, select=cfg.select_top > 1)
         try:
             self.csv = MetricsCSV(self.run_dir / "metrics.csv", csv_fields(), extend=True)
         except ValueError as e:
@@ -248,22 +268,39 @@ class RunOutputs:
         """Continue after ``epoch`` (a resume): later rows and best policies are abandoned;
         the summary record is taken from what is kept (read once, here)."""
         self.ckpt.discard_after(epoch)
+        if self.cfg.select_top > 1:
+            self.ckpt.clear_selected()  # chosen again when this run ends
         self.csv.truncate_after(epoch)
         rows = self.csv.rows() if epoch > 0 else []
         self.last_row = rows[-1] if rows else {}
         self.record.resume(self.last_row or None, self.ckpt.best_meta() if epoch > 0 else None)
 
-    def write(self, row: Mapping[str, Any], policy: Any | None) -> None:
-        """Append ``row``; save ``policy`` as the best one when given (a new best epoch)."""
+    def write(self, row: Mapping[str, Any], policy: Any | None, best: bool = True) -> None:
+        """Append ``row``; save ``policy`` when given: as the best one (``best``, a new best
+        epoch) and, with ``select_top`` > 1, among the candidates."""
         self.csv.append(row)
         if self.tb is not None:
             self.tb.scalars(row, step=int(row["env_steps"]))
         epoch, success = int(row["epoch"]), float(row["test_success"])
-        if policy is not None:
-            self.ckpt.save_best(epoch, policy, {"test_success": success, "epoch": epoch})
-        self.record.add(row, new_best=policy is not None)
+        meta = {"test_success": success, "epoch": epoch}
+        new_best = policy is not None and best
+        if new_best:
+            self.ckpt.save_best(epoch, policy, meta)
+        if policy is not None and self.cfg.select_top > 1:
+            self.keep_candidate(epoch, policy, meta)
+        self.record.add(row, new_best=new_best)
         self.last_row = row
         self._unplotted = True
+
+    def keep_candidate(self, epoch: int, policy: Any, meta: Mapping[str, Any]) -> None:
+        """Save ``policy`` among the candidates, then drop the worst while more than
+        ``select_top`` are kept (the lowest test success; of equals, the earliest epoch)."""
+        self.ckpt.save_candidate(epoch, policy, meta)
+        kept = self.ckpt.candidates()
+        while len(kept) > self.cfg.select_top:
+            worst = min(kept, key=lambda e: (float(kept[e]["test_success"]), e))
+            self.ckpt.drop_candidate(worst)
+            del kept[worst]
 
     def plot_if_due(self) -> None:
         """Redraw success.png if ``PLOT_EVERY_S`` passed since it was last drawn."""
@@ -363,13 +400,28 @@ class Outputs:
         return 0, None, Progress.fresh(plan.names)
 
     def write(self, rows: Mapping[int, Mapping[str, Any]], new_best: Sequence[int],
-              policies: Callable[[], Any]) -> None:
-        """Each run's row, and the best policies of the runs with a new best. ``policies``
-        fetches every run's learner state (once, only when some run has a new best)."""
-        pol = policies() if new_best else None
+              policies: Callable[[], Any], new_kept: Sequence[int] = ()) -> None:
+        """Each run's row, and the policies of the runs with a new best or a new candidate.
+        ``policies`` fetches every run's learner state (once, only when some policy is
+        saved)."""
+        saved = set(new_best) | set(new_kept)
+        pol = policies() if saved else None
         for i, row in rows.items():
             if i in self.runs:
-                self.runs[i].write(row, run_of(pol, i) if i in new_best else None)
+                self.runs[i].write(row, run_of(pol, i) if i in saved else None,
+                                   best=i in new_best)
+
+    def select(self, progress: Progress, log: Callable[[str], Any]) -> None:
+        """With ``select_top`` > 1, each live run's policy is chosen among its candidates
+        (:func:`rdher_jax.policy_test.select`) once training has ended."""
+        if not self.runs or self.plan.base.select_top <= 1:
+            return
+        from .policy_test import select  # builds an evaluation program: only when asked
+
+        for i, o in self.runs.items():
+            if self.plan.names[i] not in progress.diverged:
+                line = select(o.run_dir, o.ckpt)
+                log(f"{self.plan.names[i]}: {line}" if self.plan.sweep else line)
 
     def save_latest(self, epoch: int, state: Any, meta: Mapping[str, Any]) -> None:
         self.latest.save_latest(epoch, state, meta)

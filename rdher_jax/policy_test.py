@@ -1,6 +1,11 @@
-"""The best policy of a run on new test episodes: ``evaluate`` (what ``python -m
-rdher_jax.evaluate`` prints, and the experiments' best-policy retest) and ``retest`` (the end of a
-training run with ``retest=N``). A library module: the command lines import it, not each other.
+"""A run's policy on new test episodes: ``evaluate`` (what ``python -m rdher_jax.evaluate``
+prints, and the experiments' best-policy retest), ``retest`` (the end of a training run with
+``retest=N``) and ``select`` (the end of a training run with ``select_top`` > 1: the policy chosen
+among the best test epochs' on episodes of its own). A library module: the command lines import
+it, not each other.
+
+A run's policy is its selected one where a choice was made, else its best test epoch's
+(:meth:`rdher_jax.checkpoint.Checkpointer.restore_policy`).
 """
 
 from __future__ import annotations
@@ -23,7 +28,7 @@ from .runlog import write_text_atomic
 # λ pairs) share one build and one compilation (experiments test every run of a sweep).
 _PER_RUN_KEYS = ("seed", "lambda_r", "lambda_h", "epochs", "run_dir", "resume",
                  "checkpoint_every", "tensorboard", "progress", "stop_success", "stop_window",
-                 "retest")
+                 "retest", "select_top", "select_episodes")
 _PROGRAMS: dict[str, tuple] = {}
 
 
@@ -45,7 +50,7 @@ def evaluate(run_dir: Path, episodes: int = 100, seed: int = 0, backend: str | N
              scene: str | None = None, video: str | Path | None = None,
              video_episodes: int = 3, width: int = DEFAULT_SIZE,
              height: int = DEFAULT_SIZE) -> dict:
-    """Test success of the best policy of ``run_dir`` over ``episodes`` episodes; with
+    """Test success of the policy of ``run_dir`` over ``episodes`` episodes; with
     ``video``, also ``video_episodes`` deterministic episodes rendered to that .gif or .mp4
     (raises ``render.RenderError`` if MuJoCo cannot render or the file cannot be written)."""
     if video is not None:
@@ -59,16 +64,17 @@ def evaluate(run_dir: Path, episodes: int = 100, seed: int = 0, backend: str | N
     cfg = dataclasses.replace(cfg, n_test_rollouts=episodes)
     env, trainer, template, run_episodes = _program(cfg)
     ckpt = Checkpointer(run_dir, read_only=True)
-    if ckpt.best_epoch() is None:
+    if ckpt.policy_epoch() is None:
         raise ConfigError(f"{run_dir} has no best-policy checkpoint yet")
-    epoch, policy, meta = ckpt.restore_best(template)
+    epoch, policy, meta = ckpt.restore_policy(template)
     with contextlib.ExitStack() as stack:
         if video is not None:  # a GL context first: an unusable one fails before the episodes
             renderer = stack.enter_context(render.FrameRenderer(env, width, height))
         success = run_episodes(jax.random.PRNGKey(seed), policy, hparams_from_config(cfg))
         out = {"success": float(success), "epoch": epoch, "episodes": episodes,
                "backend": env.backend.name, "scene": env.setup.variant,
-               "train_test_success": meta.get("test_success")}
+               "train_test_success": meta.get("test_success"),
+               "selected": "selection_success" in meta}
         if video is not None:
             rollout = jax.jit(render.make_rollout(env, trainer.ddpg.act, video_episodes))
             # Its own key: the video episodes do not depend on how many were evaluated.
@@ -89,5 +95,43 @@ def retest(run_dir: Path, episodes: int) -> str:
     r = evaluate(run_dir, episodes)
     write_text_atomic(run_dir / RETEST_FILE, json.dumps(r, indent=1) + "\n")
     won = round(r["success"] * episodes)
-    return (f"retest: the best policy (epoch {r['epoch']}) succeeds on {won} of {episodes} new "
-            f"episodes ({100 * r['success']:.0f}%)")
+    which = "selected" if r["selected"] else "best"
+    return (f"retest: the {which} policy (epoch {r['epoch']}) succeeds on {won} of {episodes} "
+            f"new episodes ({100 * r['success']:.0f}%)")
+
+
+# The selection episodes' root keys: SELECT_SEED + the run's seed, which no training run
+# (seeds 0, 1, ...), retest (seed 0) or benchmark evaluation (1,000,000 + seed) starts from.
+SELECT_SEED = 2_000_000
+
+
+def select(run_dir: Path, ckpt: Checkpointer) -> str:
+    """Chooses the run's policy among its kept candidates (the ``select_top`` best test
+    epochs'): each is tested on the same ``select_episodes`` episodes (root key SELECT_SEED +
+    the run's seed), and the best of them (ties: the later epoch) is saved as the selected
+    policy, which :func:`evaluate` and :func:`retest` then test on episodes of their own.
+    Returns the line to print."""
+    from .program import hparams_from_config
+    cfg = from_yaml(run_dir / "config.yaml")
+    episodes = cfg.select_episodes
+    kept = ckpt.candidates()
+    if not kept:
+        raise ConfigError(f"{run_dir} has no candidate policies to select from")
+    env, trainer, template, run_episodes = _program(
+        dataclasses.replace(cfg, n_test_rollouts=episodes))
+    key, hp = jax.random.PRNGKey(SELECT_SEED + cfg.seed), hparams_from_config(cfg)
+    scores = {}
+    for epoch in sorted(kept):
+        _, policy, _ = ckpt.restore_candidate(epoch, template)
+        scores[epoch] = float(run_episodes(key, policy, hp))
+    chosen = max(scores, key=lambda e: (scores[e], e))
+    _, policy, _ = ckpt.restore_candidate(chosen, template)
+    ckpt.save_selected(chosen, policy, {
+        "epoch": chosen, "test_success": kept[chosen]["test_success"],
+        "selection_success": scores[chosen], "selection_episodes": episodes,
+        "selection_seed": SELECT_SEED + cfg.seed,
+        "candidates": {str(e): {"test_success": kept[e]["test_success"],
+                                "selection_success": scores[e]} for e in sorted(kept)}})
+    tried = ", ".join(f"{e}: {round(scores[e] * episodes)}" for e in sorted(kept))
+    return (f"selected: the policy of epoch {chosen}, the best of the {len(kept)} best test "
+            f"epochs on {episodes} selection episodes (successes by epoch: {tried})")
