@@ -25,7 +25,7 @@ from pathlib import Path
 
 import harness
 
-from rdher_jax.config import SUCCESS_TOLERANCE
+from rdher_jax.config import RESUMABLE_KEYS, SUCCESS_TOLERANCE
 
 THRESHOLDS = (0.5, 0.9)
 
@@ -67,8 +67,9 @@ def run_seed(run_dir: Path, seed: int, settings: list[str], train: bool = True,
             return list(csv.DictReader(f))
     argv = [sys.executable, "-m", "rdher_jax.train"]
     fresh = not (run_dir / "config.yaml").exists()
-    if not fresh:
-        argv += [f"resume={run_dir}"] + [s for s in settings if s.startswith("epochs=")]
+    if not fresh:  # a resume takes the settings a run may change on its way (e.g. epochs=)
+        argv += [f"resume={run_dir}"] + [s for s in settings
+                                         if s.split("=", 1)[0] in RESUMABLE_KEYS]
     else:
         argv += [*settings, f"seed={seed}", f"run_dir={run_dir}"]
     t_start = time.time()

@@ -682,6 +682,22 @@ def test_bench_gpu_target_rule_and_bad_input(capsys):
     assert err.startswith("error: unknown stage 'nope'") and "\n" not in err
 
 
+def test_bench_learning_resume_passes_only_resumable_settings(tmp_path, monkeypatch):
+    """A run bench_learning continues gets the settings a resume may change (a longer budget,
+    a policy choice), not the ones its config fixed (those would be refused)."""
+    import bench_learning  # noqa: PLC0415
+
+    calls = []
+    monkeypatch.setattr(bench_learning.subprocess, "run", lambda argv, **kw: calls.append(argv))
+    (tmp_path / "config.yaml").write_text("env: FetchSlide\n")
+    (tmp_path / "metrics.csv").write_text("epoch,env_steps,test_success\n1,2500,0.0\n")
+    bench_learning.run_seed(tmp_path, 1, ["env=FetchSlide", "layers=2", "epochs=400",
+                                          "select_top=5"], retest=100)
+    (argv,) = calls
+    assert argv[3:] == [f"resume={tmp_path}", "epochs=400", "select_top=5", "progress=false",
+                        "retest=100"]
+
+
 def test_bench_learning_hits_agree_with_the_stop_rule(tmp_path):
     """A success rate is a float32 ratio of counts: 7/10, 10/10, 10/10 average a hair under
     0.9, and the trainer's stop_success (outputs.reached_stop) counts it as 0.9; so does
