@@ -42,13 +42,13 @@ import math
 import os
 import platform
 import shutil
-import statistics
 import subprocess
 import sys
 import tempfile
 import time
 from collections.abc import Callable, Sequence
 from datetime import datetime, timezone
+from statistics import median
 from typing import Any
 
 import harness
@@ -66,77 +66,6 @@ EPISODE = 50
 TARGET = 2.5  # the mujoco backend, original scene, vs gymnasium's FetchPush env.step
 FUSION_OFF = "--xla_cpu_use_fusion_emitters=false"
 WORKER_MARK = "BENCH_ENVS_MJX_RESULT "
-
-
-# ----------------------------------------------------------------------------- helpers
-def median(xs: Sequence[float]) -> float:
-    return float(statistics.median(xs))
-
-
-def timed_call(fn: Callable[[], Any]) -> float:
-    """Seconds taken by ``fn()``."""
-    t0 = time.perf_counter()
-    fn()
-    return time.perf_counter() - t0
-
-
-class Timed:
-    """Wraps a function; records when each call starts and ends."""
-
-    def __init__(self, fn: Callable):
-        self.fn = fn
-        self.starts: list[float] = []
-        self.ends: list[float] = []
-
-    def __call__(self, *args, **kwargs):
-        self.starts.append(time.perf_counter())
-        out = self.fn(*args, **kwargs)
-        self.ends.append(time.perf_counter())
-        return out
-
-    def clear(self) -> None:
-        self.starts, self.ends = [], []
-
-    def per_call_us(self) -> float:
-        """Mean time inside the function per call."""
-        d = np.subtract(self.ends, self.starts)
-        return float(d.mean()) * 1e6 if d.size else float("nan")
-
-    def gap_us(self, group: int = EPISODE) -> float:
-        """Mean time between the end of a call and the start of the next, within groups of
-        ``group`` consecutive calls (one rollout): the work done between two env steps."""
-        gaps = [self.starts[i + 1] - self.ends[i] for i in range(len(self.ends) - 1)
-                if i % group != group - 1]
-        return float(np.mean(gaps)) * 1e6 if gaps else float("nan")
-
-
-def versions() -> dict[str, str]:
-    from importlib import metadata
-
-    out = {"python": platform.python_version()}
-    for pkg in ("jax", "jaxlib", "numpy", "mujoco", "mujoco-mjx", "mjbatch", "gymnasium",
-                "gymnasium-robotics"):
-        try:
-            out[pkg] = metadata.version(pkg)
-        except metadata.PackageNotFoundError:
-            out[pkg] = "not installed"
-    return out
-
-
-def hardware() -> dict[str, Any]:
-    """The host (``harness.host``) as the report reads it, with this script's package list
-    (gymnasium and numpy too) and the main process's XLA flags."""
-    h = harness.host()
-    return {
-        "cpu": h["processor"] or "unknown",
-        "logical_cpus": h["cpu_count"],
-        "usable_cpus": h["affinity"],
-        "platform": platform.platform(),
-        "loadavg_start": h["loadavg"],
-        "versions": versions(),
-        "xla_flags": os.environ.get("XLA_FLAGS", ""),
-        "host": h,
-    }
 
 
 # ----------------------------------------------------------------------------- gymnasium
@@ -251,7 +180,7 @@ def repeats_for(batch: int, repeats: int) -> int:
     return 2
 
 
-def bench_native_row(env, timed: Timed, batch: int, repeats: int, min_steps: int,
+def bench_native_row(env, timed: harness.Stamps, batch: int, repeats: int, min_steps: int,
                      ffi_env=None) -> dict:
     """Jitted 50-step rollout (``env``: the ``pure_callback`` path) vs the same host calls from
     Python, and the same rollout through the FFI handlers (``ffi_env``), in alternation."""
@@ -293,9 +222,9 @@ def bench_native_row(env, timed: Timed, batch: int, repeats: int, min_steps: int
         order = (("jit", run_jit), ("loop", run_loop)) + ((("ffi", run_ffi),) if ffi else ())
         for name, run in order if r % 2 == 0 else order[::-1]:
             timed.clear()
-            t[name].append(timed_call(run))
-            t[f"host_{name}"].append(timed.per_call_us())
-            t[f"gap_{name}"].append(timed.gap_us())
+            t[name].append(harness.seconds(run))
+            t[f"host_{name}"].append(timed.mean_call() * 1e6)
+            t[f"gap_{name}"].append(timed.mean_gap(EPISODE) * 1e6)
     jit_s, loop_s = t["jit"], t["loop"]
     pair = [lt / jt for jt, lt in zip(jit_s, loop_s, strict=True)]
     ffi_row = {} if not ffi else {
@@ -345,7 +274,7 @@ def callback_round_trip_us(be, batch: int, length: int = 200, repeats: int = 5) 
     f = jax.jit(lambda c: jax.lax.scan(body, c, None, length=length)[0])
     c = (jnp.zeros(shapes[0].shape, jnp.uint32), jnp.zeros(shapes[1].shape, jnp.float32))
     jax.block_until_ready(f(c))
-    ts = [timed_call(lambda: jax.block_until_ready(f(c))) for _ in range(repeats)]
+    ts = [harness.seconds(f, c) for _ in range(repeats)]
     return median(ts) / length * 1e6
 
 
@@ -452,7 +381,7 @@ class JitRunner:
 
         be = env.backend
         saved = be.__dict__.get("host_step")
-        self.timed = Timed(host_step or be.host_step)
+        self.timed = harness.Stamps(host_step or be.host_step)
         be.host_step = self.timed
         try:
             self.compiled, _, _ = compile_timed(make_rollout(env), batch_keys(0, batch))
@@ -473,7 +402,7 @@ class JitRunner:
         for _ in range(self.n_roll):
             jax.block_until_ready(self.compiled(self.keys))
         dt = time.perf_counter() - t0
-        return dt / (self.n_roll * EPISODE) * 1e6, self.timed.gap_us()
+        return dt / (self.n_roll * EPISODE) * 1e6, self.timed.mean_gap(EPISODE) * 1e6
 
 
 def constant_host_step(batch: int) -> Callable:
@@ -587,7 +516,7 @@ def mjx_worker(cfg: dict) -> dict:
     written = count_files(cfg["cache_dir"]) - before
     out = jax.block_until_ready(compiled(keys[0]))
     used = len(out[0].sharding.device_set)
-    ts = [timed_call(lambda k=k: jax.block_until_ready(compiled(k))) for k in keys[1:]]
+    ts = [harness.seconds(compiled, k) for k in keys[1:]]
     return {
         **{k: cfg[k] for k in ("name", "flags", "batch", "steps", "devices", "repeats")},
         "jax_devices": len(jax.devices()),
@@ -660,18 +589,18 @@ def fmt_rate(x: float) -> str:
     return f"{x:,.0f}" if x >= 100 else f"{x:.1f}"
 
 
-def report(res: dict) -> str:
-    """The results page below its title."""
+def report(res: dict, command: str, host: dict) -> str:
+    """The results page below its title: ``res`` is the JSON's figures, ``host``
+    :func:`harness.host`'s."""
     hw, ref, sp = res["hardware"], res["gym_ref_rate"], res["parallel_speedups"]
     v = hw["versions"]
     lines = [
-        f"Produced by `{res['command']}` on {res['date']} ({res['wall_s'] / 60:.1f} min).",
+        f"Produced by `{command}` on {res['date']} ({res['wall_s'] / 60:.1f} min).",
         "",
-        f"- Hardware: {hw['cpu']}, {hw['usable_cpus']} usable of {hw['logical_cpus']} logical "
-        f"CPUs, {hw['platform']}; load average at start "
+        f"- Hardware: {harness.machine(host)}, {hw['platform']}; load average at start "
         f"{', '.join(f'{x:.1f}' for x in hw['loadavg_start'])}, at end "
         f"{', '.join(f'{x:.1f}' for x in res['loadavg_end'])}.",
-        "- Versions: " + ", ".join(f"{k} {x}" for k, x in v.items()) + ".",
+        "- Versions: " + ", ".join(f"{k} {x or 'not installed'}" for k, x in v.items()) + ".",
         f"- XLA_FLAGS of the main process: `{hw['xla_flags'] or '(none)'}`; the `mujoco` backend "
         f"steps on {res.get('native_threads', '?')} mjbatch threads at most "
         "(`min(threads, batch)`).",
@@ -875,13 +804,23 @@ def main(argv: Sequence[str] | None = None) -> None:
     bd_default = [16] if quick else [1, 16]
     bd_batches = parse_ints(args.breakdown_batches) if args.breakdown_batches else bd_default
 
+    cmd, h = harness.command("bench_envs.py", argv), harness.host()
     res: dict[str, Any] = {
-        "command": harness.command("bench_envs.py", argv),
         "date": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
-        "hardware": hardware(),
+        # The host's figures the page reads (all of them under "host"), the main process's
+        # XLA flags and the versions of the packages measured.
+        "hardware": {
+            "cpu": h["processor"] or "unknown",
+            "logical_cpus": h["cpu_count"],
+            "usable_cpus": h["affinity"],
+            "platform": platform.platform(),
+            "loadavg_start": h["loadavg"],
+            "versions": {"python": h["python"],
+                         **{k: h["versions"][k] for k in harness.PACKAGES}},
+            "xla_flags": os.environ.get("XLA_FLAGS", ""),
+        },
     }
-    print(f"{res['hardware']['cpu']}, {res['hardware']['usable_cpus']} CPUs, load "
-          f"{res['hardware']['loadavg_start'][0]:.1f}", flush=True)
+    harness.say(f"{harness.machine(h)}, load {h['loadavg'][0]:.1f}")
 
     # 1. gymnasium-robotics
     gym_envs = {t: gym_env(t) for t in dict.fromkeys([REF_TASK, *tasks])}
@@ -909,7 +848,7 @@ def main(argv: Sequence[str] | None = None) -> None:
             ffi_env = make_env(task, backend="mujoco", scene=scene, auto_reset=False,
                                physics_call="ffi")
             res["native_threads"] = env.backend.num_threads
-            timed = Timed(env.backend.host_step)
+            timed = harness.Stamps(env.backend.host_step)
             env.backend.host_step = timed
             rows = {}
             for batch in push_batches[scene] if task == REF_TASK else batches:
@@ -950,7 +889,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     res["wall_s"] = time.perf_counter() - t_start
     print()
     harness.write_results(args.out, "Env-step throughput: gymnasium-robotics, the `mujoco` "
-                          "backend, MJX on CPU", [report(res)], res)
+                          "backend, MJX on CPU", [report(res, cmd, h)], res, command=cmd,
+                          host=h)
 
 
 if __name__ == "__main__":

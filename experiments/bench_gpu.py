@@ -40,7 +40,6 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 import harness  # noqa: E402
-from bench_envs import versions  # noqa: E402
 from bench_learning import first_hit  # noqa: E402
 
 DEFAULT_OUT = HERE / "results" / "bench_gpu.md"
@@ -114,7 +113,7 @@ def gpu_info() -> dict:
         info["gpu"] = q.stdout.strip()
     except (OSError, subprocess.TimeoutExpired):
         info["gpu"] = None
-    info["versions"] = versions()
+    info["versions"] = {"python": platform.python_version(), **harness.versions()}
     return info
 
 

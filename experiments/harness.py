@@ -4,7 +4,9 @@ A benchmark script parses its arguments with :func:`parser` (``--out``, ``--repe
 ``--quick`` and ``--limits-script`` where it takes them, plus its own flags), calls
 ``rdher_jax.startup.setup`` in ``main`` before anything touches a JAX device, times with
 :class:`Bench` (or :func:`interleave`, for measurements that are not one jitted call) and
-writes ``<out>.md`` and ``<out>.json`` with :func:`write_results`.
+writes ``<out>.md`` and ``<out>.json`` with :func:`write_results`. :func:`seconds` times one
+call, and :class:`Stamps` stamps each call of a function called from elsewhere (a host callback
+inside a jitted program): the time inside it and the time between two calls.
 
 Timing is interleaved because this machine's speed drifts (other processes, clocks): variants
 compared with each other are measured within seconds of each other, in an order rotated every
@@ -82,14 +84,35 @@ def say(line: str) -> None:
 # ---- the host
 
 
+# The packages a benchmark's figures depend on, in the order a results page lists them.
+PACKAGES = ("jax", "jaxlib", "numpy", "mujoco", "mujoco-mjx", "mjbatch", "gymnasium",
+            "gymnasium-robotics")
+
+
+def versions(packages: Sequence[str] = PACKAGES) -> dict[str, str | None]:
+    """The installed version of each package (None where it is not installed). Imports neither
+    JAX nor the package: for a process that must not start JAX's backend."""
+    from importlib import metadata
+
+    out: dict[str, str | None] = {}
+    for pkg in packages:
+        try:
+            out[pkg] = metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            out[pkg] = None
+    return out
+
+
 def host() -> dict[str, Any]:
-    """This machine, its load and the package versions (``rdher_jax.outputs.host_info``), with
-    the cores this process may use and the load average: on a shared machine the figures are
-    read against them. Call after start-up (it starts JAX's backend)."""
+    """This machine, its load and the package versions (``rdher_jax.outputs.host_info``, with
+    those of :data:`PACKAGES` it lacks), with the cores this process may use and the load
+    average: on a shared machine the figures are read against them. Call after start-up (it
+    starts JAX's backend)."""
     from rdher_jax.outputs import host_info
 
-    return {**host_info(), "affinity": len(os.sched_getaffinity(0)),
-            "loadavg": list(os.getloadavg())}
+    info = host_info()
+    return {**info, "versions": {**versions(), **info["versions"]},
+            "affinity": len(os.sched_getaffinity(0)), "loadavg": list(os.getloadavg())}
 
 
 def machine(h: Mapping[str, Any]) -> str:
@@ -156,6 +179,60 @@ def spread(xs: Sequence[float]) -> dict[str, float]:
     q1, q3 = quartiles(xs)
     return {"median": statistics.median(xs), "best": min(xs), "q1": q1, "q3": q3,
             "max": max(xs), "n": len(xs)}
+
+
+def seconds(fn: Callable, *args: Any, clock: Callable[[], float] = time.perf_counter) -> float:
+    """Seconds one call of ``fn(*args)`` takes, its device work waited for."""
+    t0 = clock()
+    _block(fn(*args))
+    return clock() - t0
+
+
+class Stamps:
+    """A function wrapped so that each call's start and end are stamped: the time spent inside
+    it, and between two calls the time spent elsewhere (wrap a host callback: the time between
+    its calls is the compiled program's own work around it).
+
+    Call it as the function; ``clear`` before each measurement. ``clock``: seconds (a test's
+    fake).
+    """
+
+    def __init__(self, fn: Callable, clock: Callable[[], float] = time.perf_counter):
+        self.fn, self.clock = fn, clock
+        self.starts: list[float] = []
+        self.ends: list[float] = []
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        self.starts.append(self.clock())
+        out = self.fn(*args, **kwargs)
+        self.ends.append(self.clock())
+        return out
+
+    def clear(self) -> None:
+        self.starts, self.ends = [], []
+
+    def durations(self) -> list[float]:
+        """Seconds inside each call."""
+        return [e - s for s, e in zip(self.starts, self.ends, strict=True)]
+
+    def gaps(self, group: int | None = None) -> list[float]:
+        """Seconds from the end of each call to the start of the next. With ``group``, calls
+        come in groups of that many consecutive calls (a rollout's steps) and only the gaps
+        inside a group count (not those from one group's last call to the next's first)."""
+        return [self.starts[i + 1] - self.ends[i] for i in range(len(self.ends) - 1)
+                if group is None or i % group != group - 1]
+
+    def mean_call(self) -> float:
+        """Mean seconds inside a call (NaN without one)."""
+        return _mean(self.durations())
+
+    def mean_gap(self, group: int | None = None) -> float:
+        """Mean of :meth:`gaps` (NaN without one)."""
+        return _mean(self.gaps(group))
+
+
+def _mean(xs: Sequence[float]) -> float:
+    return statistics.fmean(xs) if xs else math.nan
 
 
 def donated(fn: Callable, state: Any, *args: Any) -> Callable[[], Any]:

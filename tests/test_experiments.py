@@ -776,6 +776,38 @@ def test_bench_harness_rotates_the_order_and_takes_medians():
     assert got == {"u": ["U", "U", "U"], "v": ["V", "V", "V"]}
 
 
+def test_bench_harness_stamps_each_call_and_the_gaps_between_calls():
+    """harness.Stamps: the time inside each call of the wrapped function and between one call's
+    end and the next one's start, gaps across two groups of calls left out; harness.seconds
+    times one call; harness.versions names a missing package None."""
+    import harness  # noqa: PLC0415
+
+    now = [0.0]
+
+    def step(dt, out):
+        now[0] += dt
+        return out
+
+    stamps = harness.Stamps(step, clock=lambda: now[0])
+    assert math.isnan(stamps.mean_call()) and math.isnan(stamps.mean_gap())
+    # Two groups of three calls: inside 1, 2, 3 | 4, 5, 6; between them 10, 20 | 30, 40 and
+    # 100 from the first group's last call to the second's first.
+    for inside, before in [(1, 0), (2, 10), (3, 20), (4, 100), (5, 30), (6, 40)]:
+        now[0] += before
+        assert stamps(inside, out=inside) == inside
+    assert stamps.durations() == [1, 2, 3, 4, 5, 6] and stamps.mean_call() == 3.5
+    assert stamps.gaps() == [10, 20, 100, 30, 40] and stamps.mean_gap() == 40
+    assert stamps.gaps(group=3) == [10, 20, 30, 40] and stamps.mean_gap(3) == 25
+    assert stamps.gaps(group=1) == [] and math.isnan(stamps.mean_gap(1))
+    stamps.clear()
+    assert stamps.durations() == [] and stamps.gaps() == []
+    stamps(7, None)
+    assert stamps.durations() == [7] and stamps.gaps() == []
+    assert harness.seconds(step, 2.5, None, clock=lambda: now[0]) == 2.5
+    got = harness.versions(("numpy", "no-such-package-rdher"))
+    assert got == {"numpy": np.__version__, "no-such-package-rdher": None}
+
+
 def test_bench_harness_writes_the_same_figures_to_markdown_and_json(tmp_path):
     import harness  # noqa: PLC0415
 
