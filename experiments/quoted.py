@@ -659,12 +659,20 @@ for _f in (min, max):
 
 
 def _cost(experiment: str | None, task: str | None, col: int) -> float:
+    """cost.md's figure: sweeps' rows of ``experiment`` (and ``task``), or of the bench_learning
+    settings (``experiment`` "bench_learning"); the total (None) is both, as cost.md's."""
+    levers = [(n, t, r, h) for n, t, r, h in report.lever_cost_rows(RESULTS)]
+    lever = sum(x[col - 1] for x in levers if task in (None, x[1]))
+    if experiment == "bench_learning":
+        return lever
     rows = report.cost_rows(report.profiles_data(RESULTS))
-    return sum(r[col] for r in rows if experiment in (None, r[0]) and task in (None, r[1]))
+    return sum(r[col] for r in rows if experiment in (None, r[0]) and task in (None, r[1])) + (
+        lever if experiment is None else 0)
 
 
 for _exp, _task, _key in ((None, None, "total"), ("benchmark/paper", None, "benchmark/paper"),
-                          ("beyond/paper", "FetchPush", "beyond/paper/FetchPush")):
+                          ("beyond/paper", "FetchPush", "beyond/paper/FetchPush"),
+                          ("bench_learning", None, "bench_learning")):
     add(f"cost:{_key}:hours", "cost.md", f"cost.md: core-hours of {_key}",
         functools.partial(_cost, _exp, _task, 4))
     add(f"cost:{_key}:runs", "cost.md", f"cost.md: runs of {_key}",

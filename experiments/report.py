@@ -808,8 +808,37 @@ def cost_rows(profiles: Sequence[tuple[str, Path, list[SettingData]]]
     return rows
 
 
-def cost_markdown(profiles: Sequence[tuple[str, Path, list[SettingData]]]) -> str | None:
-    """``cost.md``: the core-hours each experiment's committed runs took, and their total."""
+def lever_cost_rows(results: Path) -> list[tuple[str, str, int, float]]:
+    """(setting, task, runs, core-hours) per setting of ``experiments/bench_learning.py`` under
+    ``results/bench_learning`` (each run pinned to one core; its wall clock from the start of
+    training, summed over resumes). A run that continues another setting's run of the same
+    seed (its curve begins with that run's whole curve) counts only what it added."""
+    settings = {}
+    for f in sorted((Path(results) / "bench_learning").glob("*.json")):
+        data = json.loads(f.read_text(encoding="utf-8"))
+        if isinstance(data, dict) and isinstance(data.get("results"), dict):
+            settings[f.stem] = data
+    curves = {(name, seed): r.get("curve") or []
+              for name, d in settings.items() for seed, r in d["results"].items()}
+    rows = []
+    for name, d in settings.items():
+        seconds = 0.0
+        for seed, r in d["results"].items():
+            curve = curves[(name, seed)]
+            before = max((len(c) for (n, s), c in curves.items()
+                          if s == seed and n != name and 0 < len(c) < len(curve)
+                          and curve[:len(c)] == c), default=0)
+            seconds += float(r["wall_s"]) - (float(curve[before - 1][1]) if before else 0.0)
+        task = next((kv.split("=", 1)[1] for kv in d.get("settings", [])
+                     if kv.startswith("env=")), "FetchReach")
+        rows.append((name, task, len(d["results"]), seconds / 3600))
+    return rows
+
+
+def cost_markdown(profiles: Sequence[tuple[str, Path, list[SettingData]]],
+                  levers: Sequence[tuple[str, str, int, float]] = ()) -> str | None:
+    """``cost.md``: the core-hours each experiment's committed runs took (and, with
+    ``levers``, each :func:`lever_cost_rows` setting's), and their total."""
     rows = cost_rows(profiles)
     if not rows:
         return None
@@ -825,9 +854,22 @@ def cost_markdown(profiles: Sequence[tuple[str, Path, list[SettingData]]]) -> st
         part = list(grouped)
         body.append([f"**{e}**", "all", "", str(sum(g[3] for g in part)),
                      f"**{sum(g[4] for g in part):.2f}**", ""])
-    body.append(["**total**", "", "", str(sum(r for _, _, _, r, _, _ in rows)),
-                 f"**{sum(h for *_, h, _ in rows):.2f}**", ""])
+    if levers:
+        body.append(["**bench_learning**", "all", "", str(sum(r for _, _, r, _ in levers)),
+                     f"**{sum(h for *_, h in levers):.2f}**", ""])
+    body.append(["**total**", "", "",
+                 str(sum(r for _, _, _, r, _, _ in rows) + sum(r for _, _, r, _ in levers)),
+                 f"**{sum(h for *_, h, _ in rows) + sum(h for *_, h in levers):.2f}**", ""])
     out += _md_table(["experiment", "task", "sweeps", "runs", "core-hours", "CPU"], body)
+    if levers:
+        out += ["", "## Lever runs (`experiments/results/bench_learning/`)", "",
+                "One row per setting of `python experiments/bench_learning.py`, one run per "
+                "seed, pinned to one core but where its note says it ran alone on both (a few "
+                "`overlap=true` runs): its wall clock from the start of training (compilation "
+                "included, summed over resumes) counted as one core's; a run continued from "
+                "another setting's counts only its own epochs. In the total above.", ""]
+        out += _md_table(["setting", "task", "runs", "core-hours"],
+                         [[f"`{n}`", t, str(r), f"{h:.2f}"] for n, t, r, h in levers])
     return "\n".join(out) + "\n"
 
 
@@ -849,7 +891,7 @@ def write_reports(results: Path, only: set[tuple[str, str]] | None = None) -> li
             figure(kind, pdir.name, data, x_col, pdir / name)
             written.append(pdir / name)
     # Over every profile, not only those written now: the total is the whole results tree's.
-    cost = cost_markdown(profiles)
+    cost = cost_markdown(profiles, lever_cost_rows(results))
     if cost is not None and written:
         write_text_atomic(Path(results) / "cost.md", cost)
         written.append(Path(results) / "cost.md")

@@ -376,6 +376,30 @@ def test_cost_counts_each_sweep_once_and_borrowed_settings_not_at_all(results, t
     assert "| **total** |  |  | " in md and f"**{total:.2f}**" in md
 
 
+def test_lever_cost_counts_a_continued_run_once(tmp_path):
+    """cost.md's bench_learning rows: each setting's runs summed, and a run continued from
+    another setting's (the same seed, its curve beginning with that run's) only for what it
+    added."""
+    d = tmp_path / "bench_learning"
+    d.mkdir()
+    first = [[2500, 10.0, 0.0], [5000, 20.0, 0.1]]
+    more = [*first, [7500, 31.0, 0.2], [10000, 40.0, 0.3]]
+
+    def write(name, results, env="FetchSlide"):
+        (d / f"{name}.json").write_text(json.dumps({
+            "settings": [f"env={env}", "epochs=4"], "seeds": list(results),
+            "results": {str(k): {"wall_s": c[-1][1], "curve": c} for k, c in results.items()}}))
+
+    write("short", {1: first, 2: [[2500, 7.0, 0.0]]})
+    write("long", {1: more})
+    write("other", {3: first}, env="FetchPush")  # same curve, another seed: its own run
+    (d / "notes.json").write_text("[]")  # not a setting
+    rows = {n: (t, r, h) for n, t, r, h in report.lever_cost_rows(tmp_path)}
+    assert rows == {"short": ("FetchSlide", 2, pytest.approx(27.0 / 3600)),
+                    "long": ("FetchSlide", 1, pytest.approx(20.0 / 3600)),
+                    "other": ("FetchPush", 1, pytest.approx(20.0 / 3600))}
+
+
 def test_report_regenerates_byte_identical_from_the_results_alone(results, tmp_path):
     # A copy of the results, far from the sweep directories: the report needs nothing else.
     copy = tmp_path / "results"
@@ -405,6 +429,9 @@ def test_committed_tables_regenerate_from_the_committed_csvs(tmp_path):
         if (src / kind).is_dir():
             shutil.copytree(src / kind, copy / kind,
                             ignore=shutil.ignore_patterns("summary.*", "*.png"))
+    (copy / "bench_learning").mkdir()
+    for f in (src / "bench_learning").glob("*.json"):  # the lever runs' rows of cost.md
+        shutil.copy(f, copy / "bench_learning" / f.name)
     report.write_reports(copy)
     tables.append(Path("cost.md"))
     for rel in tables:
