@@ -91,9 +91,22 @@ def read_retest(run_dir: Path) -> dict | None:
     return {k: r[k] for k in ("success", "epoch", "episodes")}
 
 
+def read_selection(run_dir: Path) -> dict | None:
+    """The run's choice of policy (``select_top`` > 1: ``selection.json``): the chosen epoch,
+    the selection episodes and each candidate epoch's test and selection successes."""
+    try:
+        r = json.loads((run_dir / "selection.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return {k: r[k] for k in ("epoch", "selection_episodes", "candidates")}
+
+
 def retest_cell(r: dict) -> str:
-    t = r.get("retest")
-    return "-" if not t else f"{100 * t['success']:.0f}% of {t['episodes']} (epoch {t['epoch']})"
+    t, sel = r.get("retest"), r.get("selection")
+    if not t:
+        return "-"
+    how = f", selected of {len(sel['candidates'])}" if sel else ""
+    return f"{100 * t['success']:.0f}% of {t['episodes']} (epoch {t['epoch']}{how})"
 
 
 def startup_s(run_dir: Path) -> float | None:
@@ -247,6 +260,7 @@ def main() -> None:
             "best": max((float(r["test_success"]) for r in rows), default=0.0),
             "startup_s": startup_s(run_dir),
             "retest": read_retest(run_dir),
+            "selection": read_selection(run_dir),
             "hits": {str(t): first_hit(rows, t, args.window) for t in THRESHOLDS},
             "curve": [(int(r["env_steps"]), float(r["wall_time"]), float(r["test_success"]))
                       for r in rows],

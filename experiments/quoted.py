@@ -359,6 +359,8 @@ def learning(name: str, field: str, rest: list[str]) -> float | str:
     first test there), ``to0.5m3`` / ``to0.9m3`` (to the first trailing mean of 3 there; the
     text ``not reached`` where none is), ``to0.5_min``, ``to0.9m3_min``, ...: the same in
     minutes of training; ``retest`` the best policy's retest at the end of the run, %;
+    ``selected`` and ``selbest`` (runs with ``select_top``): the selection episodes' success
+    (%) of the selected policy and of the best test epoch's policy (ties: the later);
     ``w<a>-<b>k`` the mean test success (%) of the epochs that end after a and by b thousand
     env steps (``w300-400k``)."""
     if len(rest) != 1 or not re.fullmatch(r"s\d+", rest[0]):
@@ -371,6 +373,14 @@ def learning(name: str, field: str, rest: list[str]) -> float | str:
         if not run.get("retest"):
             raise KeyError(f"bench_learning/{name}.json has no retest of seed {seed}")
         return 100 * float(run["retest"]["success"])
+    if field in ("selected", "selbest"):
+        sel = run.get("selection")
+        if not sel:
+            raise KeyError(f"bench_learning/{name}.json seed {seed} made no selection")
+        c = sel["candidates"]
+        epoch = str(sel["epoch"]) if field == "selected" else max(
+            c, key=lambda e: (float(c[e]["test_success"]), int(e)))
+        return 100 * float(c[epoch]["selection_success"])
     if field in ("best", "env_steps"):
         return float(run[field])
     if m := re.fullmatch(r"w(\d+)-(\d+)k", field):
@@ -386,7 +396,7 @@ def learning(name: str, field: str, rest: list[str]) -> float | str:
         return "not reached" if got is None else \
             float(got["wall_s"]) / 60 if m[3] else float(got["env_steps"])
     raise KeyError(f"no bench_learning figure {field!r} (best, env_steps, minutes, to<x>, "
-                   "to<x>m3, to<x>_min, to<x>m3_min, retest, w<a>-<b>k)")
+                   "to<x>m3, to<x>_min, to<x>m3_min, retest, selected, selbest, w<a>-<b>k)")
 
 
 def _table3_s(task: str, algo: str | None) -> float:

@@ -268,8 +268,9 @@ class RunOutputs:
         """Continue after ``epoch`` (a resume): later rows and best policies are abandoned;
         the summary record is taken from what is kept (read once, here)."""
         self.ckpt.discard_after(epoch)
-        if self.cfg.select_top > 1:
-            self.ckpt.clear_selected()  # chosen again when this run ends
+        if self.cfg.select_top > 1:  # chosen again when this run ends
+            self.ckpt.clear_selected()
+            (self.run_dir / "selection.json").unlink(missing_ok=True)
         self.csv.truncate_after(epoch)
         rows = self.csv.rows() if epoch > 0 else []
         self.last_row = rows[-1] if rows else {}

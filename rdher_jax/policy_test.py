@@ -87,6 +87,7 @@ def evaluate(run_dir: Path, episodes: int = 100, seed: int = 0, backend: str | N
 
 
 RETEST_FILE = "retest.json"
+SELECT_FILE = "selection.json"  # select's choice, as saved with the selected policy
 
 
 def retest(run_dir: Path, episodes: int) -> str:
@@ -126,12 +127,13 @@ def select(run_dir: Path, ckpt: Checkpointer) -> str:
         scores[epoch] = float(run_episodes(key, policy, hp))
     chosen = max(scores, key=lambda e: (scores[e], e))
     _, policy, _ = ckpt.restore_candidate(chosen, template)
-    ckpt.save_selected(chosen, policy, {
-        "epoch": chosen, "test_success": kept[chosen]["test_success"],
-        "selection_success": scores[chosen], "selection_episodes": episodes,
-        "selection_seed": SELECT_SEED + cfg.seed,
-        "candidates": {str(e): {"test_success": kept[e]["test_success"],
-                                "selection_success": scores[e]} for e in sorted(kept)}})
+    meta = {"epoch": chosen, "test_success": kept[chosen]["test_success"],
+            "selection_success": scores[chosen], "selection_episodes": episodes,
+            "selection_seed": SELECT_SEED + cfg.seed,
+            "candidates": {str(e): {"test_success": kept[e]["test_success"],
+                                    "selection_success": scores[e]} for e in sorted(kept)}}
+    ckpt.save_selected(chosen, policy, meta)
+    write_text_atomic(run_dir / SELECT_FILE, json.dumps(meta, indent=1) + "\n")
     tried = ", ".join(f"{e}: {round(scores[e] * episodes)}" for e in sorted(kept))
     return (f"selected: the policy of epoch {chosen}, the best of the {len(kept)} best test "
             f"epochs on {episodes} selection episodes (successes by epoch: {tried})")

@@ -1,6 +1,7 @@
 """The figures that RESULTS.md, README.md and the results READMEs quote in their prose, against
 the committed data they come from (experiments/quoted.py)."""
 
+import json
 import os
 import sys
 from pathlib import Path
@@ -114,3 +115,20 @@ def test_bench_learning_figures_and_retests():
     assert quoted.source("bl/pnp-fast-600k:retest:s1").name == "pnp-fast-600k.json"
     with pytest.raises(KeyError):
         quoted.value("bl/pnp-fast-600k:best")  # the seed goes last
+
+
+def test_bench_learning_selection_figures(tmp_path, monkeypatch):
+    """``selected`` / ``selbest``: the selection episodes' success of the chosen policy and of
+    the best test epoch's (of equal tests, the later), from the run's recorded selection."""
+    (tmp_path / "bench_learning").mkdir()
+    run = {"selection": {"epoch": 7, "selection_episodes": 100, "candidates": {
+        "3": {"test_success": 0.9, "selection_success": 0.55},
+        "5": {"test_success": 0.9, "selection_success": 0.6},
+        "7": {"test_success": 0.8, "selection_success": 0.7}}}}
+    (tmp_path / "bench_learning" / "sel.json").write_text(
+        json.dumps({"results": {"1": run, "2": {"selection": None}}}))
+    monkeypatch.setattr(quoted, "RESULTS", tmp_path)
+    assert quoted.learning("sel", "selected", ["s1"]) == pytest.approx(70.0)
+    assert quoted.learning("sel", "selbest", ["s1"]) == pytest.approx(60.0)  # epoch 5, not 3
+    with pytest.raises(KeyError, match="made no selection"):
+        quoted.learning("sel", "selected", ["s2"])

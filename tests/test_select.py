@@ -1,6 +1,7 @@
 """select_top: the run's policy chosen at the end among its best test epochs' policies."""
 
 import csv
+import json
 import random
 from pathlib import Path
 
@@ -69,6 +70,7 @@ def test_selected_policy_is_the_best_candidate_on_its_episodes(tmp_path):
     assert sorted(scores) == sorted(kept)
     chosen = max(scores, key=lambda e: (scores[e], e))
     assert ckpt.policy_epoch() == meta["epoch"] == chosen
+    assert json.loads((run / policy_test.SELECT_FILE).read_text()) == meta
     # The recorded score is the selected policy's success on the selection episodes: evaluate
     # on the same key and episode count gives it again; the retest says which policy it tests.
     again = policy_test.evaluate(run, episodes=8, seed=policy_test.SELECT_SEED + TINY["seed"])
@@ -86,6 +88,8 @@ def test_selected_policy_is_the_best_candidate_on_its_episodes(tmp_path):
     resumed = Checkpointer(short, read_only=True)
     assert resumed.candidates() == kept
     assert resumed.restore_policy(None)[2]["candidates"] == meta["candidates"]
+    assert json.loads((short / policy_test.SELECT_FILE).read_text())["candidates"] == \
+        meta["candidates"]
 
 
 def test_select_top_one_keeps_no_candidates_and_bad_values_are_refused(tmp_path):
