@@ -90,17 +90,12 @@ PACKAGES = ("jax", "jaxlib", "numpy", "mujoco", "mujoco-mjx", "mjbatch", "gymnas
 
 
 def versions(packages: Sequence[str] = PACKAGES) -> dict[str, str | None]:
-    """The installed version of each package (None where it is not installed). Imports neither
-    JAX nor the package: for a process that must not start JAX's backend."""
-    from importlib import metadata
+    """The installed version of each package (None where it is not installed;
+    ``rdher_jax.runlog.package_versions``). Imports no JAX: for a process that must not start
+    JAX's backend."""
+    from rdher_jax.runlog import package_versions
 
-    out: dict[str, str | None] = {}
-    for pkg in packages:
-        try:
-            out[pkg] = metadata.version(pkg)
-        except metadata.PackageNotFoundError:
-            out[pkg] = None
-    return out
+    return package_versions(packages)
 
 
 def host() -> dict[str, Any]:

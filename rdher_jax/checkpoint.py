@@ -31,6 +31,8 @@ from orbax.checkpoint import checkpoint_managers
 
 from rdher_jax.runlog import json_default
 
+# Beside the checkpoints, in the run directory: the choice the ``selected`` slot holds, as JSON.
+SELECT_FILE = "selection.json"
 _TMP_MARK = ".orbax-checkpoint-tmp"
 _TRASH_PREFIX = ".deleting-"
 
@@ -375,15 +377,13 @@ class Checkpointer:
     def policy_epoch(self) -> int | None:
         """Epoch of the run's policy: the selected one where a choice was made, else the best
         test epoch's; None without either."""
-        if self._selected is not None and self._selected.latest() is not None:
-            return self._selected.latest()
-        return self.best_epoch()
+        chosen = None if self._selected is None else self._selected.latest()
+        return self.best_epoch() if chosen is None else chosen
 
     def restore_policy(self, template: Any) -> tuple[int, Any, dict]:
         """``(epoch, policy, meta)`` of the run's policy (see :meth:`policy_epoch`)."""
-        if self._selected is not None and self._selected.latest() is not None:
-            return self._selected.restore(template)
-        return self.restore_best(template)
+        chosen = None if self._selected is None else self._selected.latest()
+        return self.restore_best(template) if chosen is None else self._selected.restore(template)
 
     def restore_latest(self, template: Any) -> tuple[int, Any, dict]:
         """``(epoch, state, meta)`` of the latest checkpoint, restored into ``template``'s

@@ -17,7 +17,6 @@ Where each file goes is :mod:`rdher_jax.plan`'s to say.
 from __future__ import annotations
 
 import dataclasses
-import importlib.metadata
 import math
 import os
 import platform
@@ -31,7 +30,7 @@ import jax
 import numpy as np
 
 from . import distributed, summary
-from .checkpoint import Checkpointer
+from .checkpoint import SELECT_FILE, Checkpointer
 from .config import SUCCESS_TOLERANCE, Config, ConfigError, to_yaml
 from .executor import resolve_backend
 from .plan import BASE_CONFIG_FILE, SPEC_FILE, Plan, TrainingDiverged, latest_slot
@@ -41,6 +40,7 @@ from .runlog import (
     TBWriter,
     make_dir,
     metric_fields,
+    package_versions,
     plot_success,
     write_json_atomic,
     write_text_atomic,
@@ -270,7 +270,7 @@ class RunOutputs:
         self.ckpt.discard_after(epoch)
         if self.cfg.select_top > 1:  # chosen again when this run ends
             self.ckpt.clear_selected()
-            (self.run_dir / "selection.json").unlink(missing_ok=True)
+            (self.run_dir / SELECT_FILE).unlink(missing_ok=True)
         self.csv.truncate_after(epoch)
         rows = self.csv.rows() if epoch > 0 else []
         self.last_row = rows[-1] if rows else {}
@@ -339,12 +339,7 @@ def _cpu_model() -> str:
 
 def host_info() -> dict[str, Any]:
     """This machine and the package versions (also what the benchmarks record)."""
-    versions = {}
-    for pkg in VERSIONED:
-        try:
-            versions[pkg] = importlib.metadata.version(pkg)
-        except importlib.metadata.PackageNotFoundError:
-            versions[pkg] = None
+    versions = package_versions(VERSIONED)
     return {"jax_backend": jax.default_backend(), "devices": [str(d) for d in jax.devices()],
             "cpu_count": os.cpu_count(), "machine": platform.machine(),
             "processor": platform.processor() or _cpu_model(),

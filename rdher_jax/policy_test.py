@@ -19,7 +19,7 @@ import jax
 import numpy as np
 
 from . import render
-from .checkpoint import Checkpointer
+from .checkpoint import SELECT_FILE, Checkpointer
 from .config import ConfigError, from_yaml
 from .render import DEFAULT_SIZE
 from .runlog import write_text_atomic
@@ -87,7 +87,6 @@ def evaluate(run_dir: Path, episodes: int = 100, seed: int = 0, backend: str | N
 
 
 RETEST_FILE = "retest.json"
-SELECT_FILE = "selection.json"  # select's choice, as saved with the selected policy
 
 
 def retest(run_dir: Path, episodes: int) -> str:
@@ -121,12 +120,12 @@ def select(run_dir: Path, ckpt: Checkpointer) -> str:
     env, trainer, template, run_episodes = _program(
         dataclasses.replace(cfg, n_test_rollouts=episodes))
     key, hp = jax.random.PRNGKey(SELECT_SEED + cfg.seed), hparams_from_config(cfg)
-    scores = {}
-    for epoch in sorted(kept):
-        _, policy, _ = ckpt.restore_candidate(epoch, template)
-        scores[epoch] = float(run_episodes(key, policy, hp))
-    chosen = max(scores, key=lambda e: (scores[e], e))
-    _, policy, _ = ckpt.restore_candidate(chosen, template)
+    scores, chosen, policy = {}, None, None
+    for epoch in sorted(kept):  # ascending: a later epoch wins a tie
+        _, candidate, _ = ckpt.restore_candidate(epoch, template)
+        scores[epoch] = float(run_episodes(key, candidate, hp))
+        if chosen is None or scores[epoch] >= scores[chosen]:
+            chosen, policy = epoch, candidate
     meta = {"epoch": chosen, "test_success": kept[chosen]["test_success"],
             "selection_success": scores[chosen], "selection_episodes": episodes,
             "selection_seed": SELECT_SEED + cfg.seed,

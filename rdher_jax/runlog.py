@@ -36,6 +36,20 @@ LEADING_FIELDS: tuple[str, ...] = (
 LOOP_FIELDS: tuple[str, ...] = ("epoch", "wall_time")
 
 
+
+def package_versions(packages: Sequence[str]) -> dict[str, str | None]:
+    """The installed version of each package (None where it is not installed), read from the
+    installed metadata: importing none of them."""
+    from importlib import metadata
+
+    out: dict[str, str | None] = {}
+    for pkg in packages:
+        try:
+            out[pkg] = metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            out[pkg] = None
+    return out
+
 def metric_fields(names: Iterable[str]) -> tuple[str, ...]:
     """The CSV columns for an epoch's metric ``names`` (e.g. the fields of ``EpochMetrics``).
 
