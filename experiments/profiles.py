@@ -33,7 +33,11 @@ Sweep directories (with checkpoints) live under ``<runs-dir>/<kind>/<profile>/<t
 and are what makes a long experiment resumable: :func:`run_job` continues an unfinished sweep
 (``resume=``), skips a finished one, and starts a missing one. A setting too long for one
 sitting can be run in pieces of its seeds: ``--seeds 3`` for seeds 0-2, then ``--seeds 5
---first-seed 3`` for seeds 3-4 in ``<sweep>.s3-4``; collecting merges the pieces.
+--first-seed 3`` for seeds 3-4 in ``<sweep>.s3-4``; collecting merges the pieces. A seed
+trained already as a run of its own, of the same settings, becomes its piece with ``--seeds
+K+1 --first-seed K --adopt RUN_DIR`` (:func:`adopt_job`, ``rdher_jax/adopt.py``: the configs
+are compared key by key, and the piece is written as its sweep would be after the run's
+epochs); the next call without ``--adopt`` resumes it.
 """
 
 from __future__ import annotations
@@ -371,6 +375,47 @@ def run_job(job: Job, progress: bool, dry_run: bool = False, log=print) -> str:
     return action
 
 
+def adopt_job(job: Job, source: Path, dry_run: bool = False, log=print) -> Path:
+    """Make ``source``, a run of its own (``python -m rdher_jax.train``), the sweep ``job``
+    would run for its one seed (``--seeds K+1 --first-seed K``), as that sweep would be after
+    the run's epochs; the next call without ``--adopt`` resumes it to the job's epochs and
+    collects it as any piece (:mod:`rdher_jax.adopt`). Refused (a ConfigError, nothing written)
+    unless the run is the same learning problem as the sweep's run, stopped at a checkpoint,
+    and the sweep directory does not exist yet."""
+    import dataclasses
+    import shlex
+
+    from rdher_jax import sweep as sw
+
+    if job.borrowed:
+        raise ConfigError(f"--adopt: {job.name} of {job.task} is the {job.sweep_kind} "
+                          f"experiment's sweep; adopt it there")
+    n = job.seeds - job.first_seed
+    if n != 1:
+        raise ConfigError(f"--adopt fills the sweep of one seed; this call's has {n} (seeds "
+                          f"{job.first_seed}..{job.seeds - 1}): pass --seeds K+1 --first-seed K")
+    from rdher_jax import adopt
+
+    d = job.sweep_dir
+    src = adopt.Source.read(source)
+    adopt.refuse_existing(src, d)  # before the sweep's own check, which suggests resume=
+    full = sw.parse_sweep_args([*job.argv(False), f"sweep_dir={d}"]).plan
+    if len(full.runs) != 1:
+        raise ConfigError(f"--adopt fills a sweep of one run; {job.name} of {job.task} has "
+                          f"{len(full.runs)} per seed")
+    adopt.check(src, d, full.runs[0])  # at the job's epochs: the run may not have more
+    # The sweep this call would have run with --epochs <the run's>, after the run's epochs.
+    at = dataclasses.replace(job, settings={**job.settings, "epochs": src.config.epochs})
+    argv = [*at.argv(False), f"sweep_dir={d}"]
+    plan = sw.parse_sweep_args(argv).plan
+    log(f"[{job.task} {job.name}] adopt{' (dry run)' if dry_run else ''}: {source} "
+        f"({src.epoch} of {job.epochs} epochs) as {d / plan.names[0]}, as if by: "
+        f"{shlex.join(['python', '-m', 'rdher_jax.sweep', *argv])}")
+    if dry_run:
+        return d
+    return adopt.adopt(src, plan, argv, sw.PROG, log=log)
+
+
 # ------------------------------------------------------------------ results
 
 HARDWARE_KEYS = ("backend", "scene", "jax_backend", "devices", "cpu_count", "machine",
@@ -412,6 +457,11 @@ def best_policy_eval(run_dir: Path, seed: int, episodes: int,
         return cached
     r = evaluate(run_dir, episodes=episodes, seed=EVAL_SEED + seed)
     return {**key, "success": r["success"], "train_test_success": r["train_test_success"]}
+
+
+def _adopted(info: Mapping[str, Any]) -> dict[str, Any]:
+    """A sweep directory's record of the run it adopted (``--adopt``), if it adopted one."""
+    return {"adopted": info["adopted"]} if "adopted" in info else {}
 
 
 def _collected_pieces(meta: Mapping[str, Any]) -> list[dict[str, Any]]:
@@ -578,7 +628,8 @@ def collect(job: Job, out_root: Path, command: str, log=print,
             "sweep": {"name": job.name, "dir": _rel(d), "command": info.get("command"),
                       "runs": n_runs or info.get("n_runs"),
                       "program": info.get("program"),
-                      "state_bytes_per_run": info.get("state_bytes_per_run")},
+                      "state_bytes_per_run": info.get("state_bytes_per_run"),
+                      **_adopted(info)},
             "hardware": {k: info.get(k) for k in HARDWARE_KEYS},
             "versions": info.get("versions"),
             "runs": runs,
@@ -590,7 +641,7 @@ def collect(job: Job, out_root: Path, command: str, log=print,
                 {"dir": _rel(p), "command": i.get("command"), "runs": i.get("n_runs"),
                  "wall_clock_s": walls[p], "hardware": {k: i.get(k) for k in HARDWARE_KEYS},
                  "seeds": sorted({int(r["seed"]) for r in mine if r["_dir"] == p
-                                  and f"s{r['seed']}" in runs})}
+                                  and f"s{r['seed']}" in runs}), **_adopted(i)}
                 for p, _, i in loaded if p in walls]
         write_text_atomic(dest / "run_info.json", json.dumps(meta, indent=1, sort_keys=True) + "\n")
         written.append(dest)
@@ -651,6 +702,14 @@ def add_common_args(ap: Any) -> None:
                     "of their own (<sweep>.s<K>-<N-1>), to split a setting that does not fit "
                     "in one sitting; collecting merges every piece of a setting (default 0: "
                     "all N in one sweep)")
+    ap.add_argument("--adopt", type=Path, default=None, metavar="RUN_DIR",
+                    help="train nothing: make RUN_DIR, a run of its own (python -m "
+                    "rdher_jax.train) of the same settings and seed, the sweep of seed K "
+                    "(--seeds K+1 --first-seed K, one task and one sweep), as that sweep would "
+                    "be after the run's epochs; the same command without --adopt then resumes "
+                    "it to the profile's epochs and collects it. Refused, writing nothing, "
+                    "unless the settings match key by key (rdher_jax/adopt.py) and the sweep "
+                    "directory does not exist")
     ap.add_argument("--epochs", type=int, default=None,
                     help="override the profile's epoch count (an unfinished or finished sweep "
                     "is continued to it)")
@@ -738,6 +797,28 @@ def status_lines(job: Job, now: float | None = None) -> list[str]:
     return out
 
 
+def adopt_command(kind: str, args: Any, sweeps: Callable[[str], list[tuple]]) -> int:
+    """``--adopt RUN_DIR``: :func:`adopt_job` for the one sweep the arguments name."""
+    asked = [f for f, on in (("--status", args.status), ("--collect-only", args.collect_only),
+                             ("--coordinator", args.coordinator is not None),
+                             ("--num-processes", args.num_processes is not None),
+                             ("--process-id", args.process_id is not None)) if on]
+    if asked:
+        raise ConfigError(f"--adopt trains and collects nothing, in one process; drop "
+                          f"{', '.join(asked)}")
+    if args.first_seed < 0:
+        raise ConfigError(f"--first-seed must be >= 0, got {args.first_seed}")
+    tasks = list(dict.fromkeys(args.tasks or PROFILES[args.profile].default_tasks))
+    jobs = make_jobs(kind, args.profile, tasks, args.runs_dir, args.seeds, args.epochs, sweeps,
+                     args.first_seed)
+    if len(jobs) != 1:
+        raise ConfigError(f"--adopt fills one sweep; these arguments name {len(jobs)} ("
+                          + ", ".join(f"{j.task} {j.name}" for j in jobs) + ")")
+    setup(Startup(ffi=False))
+    adopt_job(jobs[0], args.adopt, dry_run=args.dry_run)
+    return 0
+
+
 def run_experiment(kind: str, script: str, args: Any, argv: Sequence[str],
                    sweeps: Callable[[str], list[tuple]]) -> int:
     """Plan, run (or resume, or skip) and collect every sweep, then write the report.
@@ -756,6 +837,8 @@ def run_experiment(kind: str, script: str, args: Any, argv: Sequence[str],
                 raise ConfigError(f"--{name} must be >= 1, got {v}")
         if args.eval_episodes < 0:
             raise ConfigError(f"--eval-episodes must be >= 0, got {args.eval_episodes}")
+        if args.adopt is not None:
+            return adopt_command(kind, args, sweeps)
         if args.status:
             tasks = list(dict.fromkeys(args.tasks or PROFILES[args.profile].default_tasks))
             for job in make_jobs(kind, args.profile, tasks, args.runs_dir, args.seeds,

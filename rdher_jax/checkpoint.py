@@ -374,15 +374,20 @@ class Checkpointer:
         for step in slot.steps():
             slot.remove(step)
 
+    def selected_epoch(self) -> int | None:
+        """Epoch of the policy chosen among the candidates, or None (no choice made, or a
+        checkpointer opened without the slot)."""
+        return None if self._selected is None else self._selected.latest()
+
     def policy_epoch(self) -> int | None:
         """Epoch of the run's policy: the selected one where a choice was made, else the best
         test epoch's; None without either."""
-        chosen = None if self._selected is None else self._selected.latest()
+        chosen = self.selected_epoch()
         return self.best_epoch() if chosen is None else chosen
 
     def restore_policy(self, template: Any) -> tuple[int, Any, dict]:
         """``(epoch, policy, meta)`` of the run's policy (see :meth:`policy_epoch`)."""
-        chosen = None if self._selected is None else self._selected.latest()
+        chosen = self.selected_epoch()
         return self.restore_best(template) if chosen is None else self._selected.restore(template)
 
     def restore_latest(self, template: Any) -> tuple[int, Any, dict]:
