@@ -243,8 +243,9 @@ def _sans_wall(rows):
     return [{k: v for k, v in r.items() if k != "wall_time"} for r in rows]
 
 
-@pytest.mark.parametrize(
-    "algo", [a for a in ALGO_NAMES if "dher_fraction" in adopt_mod.unused_keys(Config(algo=a))])
+@pytest.mark.parametrize(  # her in the default suite, the others with -m slow (8 s each)
+    "algo", [a if a == "her" else pytest.param(a, marks=pytest.mark.slow) for a in ALGO_NAMES
+             if "dher_fraction" in adopt_mod.unused_keys(Config(algo=a))])
 def test_dher_fraction_is_unused_without_dher(algo, tmp_path):
     """Two runs that differ only in dher_fraction (one sweep, grid.dher_fraction) give the
     same metrics under every algorithm that adopting lets it differ for."""
