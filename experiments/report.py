@@ -439,10 +439,14 @@ def _goal_lines(data: Sequence[SettingData]) -> list[str]:
            "fresh episodes, mean over seeds, at or above the goal within the task's budget. Per "
            "seed, the first epoch whose trailing mean of 3 test evaluations reaches the "
            "threshold: env steps and minutes of the training clock ('-': never).", ""]
-    rows = []
+    rows, verdicts = [], []
     for s in data:
         goal, threshold = SOLVE_GOALS.get(s.task, (math.nan, math.nan))
         policy = per_seed(s)["policy"]
+        st = stat(list(policy.values()))
+        verdict = "-" if st.n == 0 or not math.isfinite(goal) else \
+            ("met" if st.mean >= goal else "missed") + f" at {st.n} of {len(s.runs)} seeds"
+        verdicts.append([s.task, s.meta.get("label", s.name), pct(goal), pm(st), verdict])
         for seed, runs in s.runs.items():
             hit = (first_hit(runs, threshold, 3) or {}).get("window")
             rows.append([s.task, s.meta.get("label", s.name), str(seed), pct(goal),
@@ -451,7 +455,10 @@ def _goal_lines(data: Sequence[SettingData]) -> list[str]:
                          f"{hit['wall_s'] / 60:.1f}" if hit else "-"])
     head = ["task", "setting", "seed", "goal", "retest", "threshold (mean of 3)", "env steps",
             "minutes"]
-    return [*out, *_md_table(head, rows), ""]
+    per_setting = ["Per setting: the retest's mean ± std over the seeds retested so far, against "
+                   "the goal ('met' / 'missed' at n of the setting's seeds).", ""]
+    return [*out, *_md_table(head, rows), "", *per_setting,
+            *_md_table(["task", "setting", "goal", "retest", "verdict"], verdicts), ""]
 
 
 def summary_markdown(kind: str, profile: str, data: Sequence[SettingData]) -> str:

@@ -223,6 +223,12 @@ def test_solve_profile_times_each_seed_to_the_goal_threshold():
     assert lines[0] == "## Against the goal"
     table = [line for line in lines if line.startswith("| FetchSlide")]
     assert table == ["| FetchSlide | HER | 0 | 80.0 | 83.0 | 80.0 | 10,000 | 4.0 |",
-                     "| FetchSlide | HER | 1 | 80.0 | - | 80.0 | 7,500 | 3.0 |"]
-    never = report.SettingData("FetchPush", "her", {}, {0: rows([0.9, 0.9, 0.8])})
-    assert report._goal_lines([never])[-2] == "| FetchPush | her | 0 | 97.0 | - | 90.0 | - | - |"
+                     "| FetchSlide | HER | 1 | 80.0 | - | 80.0 | 7,500 | 3.0 |",
+                     # the verdict over the seeds retested so far, against the goal
+                     "| FetchSlide | HER | 80.0 | 83.0 (1 seed) | met at 1 of 2 seeds |"]
+    never = report.SettingData("FetchPush", "her", {"runs": {
+        "s0": {"best_policy": {"success": 0.99}}, "s1": {"best_policy": {"success": 0.9}}}},
+        {0: rows([0.9, 0.9, 0.8]), 1: rows([0.1])})
+    lines = report._goal_lines([never])
+    assert "| FetchPush | her | 0 | 97.0 | 99.0 | 90.0 | - | - |" in lines
+    assert lines[-2] == "| FetchPush | her | 97.0 | 94.5 ± 6.4 | missed at 2 of 2 seeds |"
