@@ -396,9 +396,8 @@ def learning(name: str, field: str, rest: list[str]) -> float | str:
         # hold only its own thresholds, 0.5 and 0.9; Slide's goal is 0.8).
         import bench_learning
 
-        rows = [{"epoch": i + 1, "env_steps": steps, "wall_time": wall, "test_success": succ}
-                for i, (steps, wall, succ) in enumerate(run["curve"])]
-        hit = bench_learning.first_hit(rows, float(m[1]), 3 if m[2] else 1) or {}
+        hit = bench_learning.first_hit(bench_learning.curve_rows(run), float(m[1]),
+                                       3 if m[2] else 1) or {}
         got = hit.get("window" if m[2] else "single")
         return "not reached" if got is None else \
             float(got["wall_s"]) / 60 if m[3] else float(got["env_steps"])

@@ -752,6 +752,14 @@ def test_bench_learning_hits_agree_with_the_stop_rule(tmp_path):
     assert bench_learning.retabulate(tmp_path, 3) == ["old"]
     assert "| 5,000 steps, 0.8 min |" in (tmp_path / "old.md").read_text()
     assert bench_learning.retabulate(tmp_path, 3) == []  # nothing left to change
+    # the summary's 'to 0.8, mean of 3' (Slide's goal) is found on the curve, hits or not
+    succ = [float(np.float32(k / 10)) for k in (8, 8, 8, 9, 9, 9)]
+    data["results"]["0"]["curve"] = [[1000 * (i + 1), 10.0 * (i + 1), s]
+                                     for i, s in enumerate(succ)]
+    (tmp_path / "old.json").write_text(json.dumps(data))
+    bench_learning.retabulate(tmp_path, 3)
+    row = bench_learning.summary(tmp_path, 3).splitlines()[-1]
+    assert row.endswith("| 6,000 steps, 1.0 min | 3,000 steps, 0.5 min | - |"), row
 
 
 def test_floor_expected_best_epoch_matches_simulation():
