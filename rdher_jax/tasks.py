@@ -67,13 +67,13 @@ def _moving(name: str, epochs: int, n_cycles: int) -> Task:
 
 # preset=fast's own values per task (docs/performance.md, 'Levers'). The budget: the env steps
 # within which each task is to be solved (Push 500,000, PickAndPlace 600,000, Slide 2,000,000),
-# in epochs of 50 cycles. PickAndPlace: twin critics (TD3's clipped double Q). Slide: the paper's
-# own learner (Table 1: two episodes then 40 updates per cycle, 3 x 256, action penalty, targets
-# moved 5% per cycle, no TD3 smoothing or delay, no terminal rule), which learns Slide where the
-# fast learner does not, with twin critics, which lift it further; only the preset's overlap,
-# dher_fraction, retest and select_top stay.
+# in epochs of 50 cycles. Push and PickAndPlace: twin critics (TD3's clipped double Q). Slide:
+# the paper's own learner (Table 1: two episodes then 40 updates per cycle, 3 x 256, action
+# penalty, targets moved 5% per cycle, no TD3 smoothing or delay, no terminal rule), which learns
+# Slide where the fast learner does not, with twin critics, which lift it further; only the
+# preset's overlap, dher_fraction, retest and select_top stay.
 FAST_VALUES: dict[str, dict[str, Any]] = {
-    "FetchPush": {"epochs": 200},
+    "FetchPush": {"epochs": 200, "n_critics": 2},
     "FetchPickAndPlace": {"epochs": 240, "n_critics": 2},
     "FetchSlide": {"epochs": 400, "num_envs": 2, "layers": 3, "action_l2": 1.0,
                    "target_every": 0, "polyak": 0.95, "target_noise": 0.0, "policy_delay": 1,
