@@ -16,6 +16,9 @@ benchmark's budget (``cpu``: FetchPush ``preset=fast``, sequential, 500,000 env 
   ``--profile paper`` these are Table 2's DHER and RDHER rows with the authors' mix.
 - ``rdher_f0.2_lr2_lh1``, ``rdher_f0.2_lr1_lh2``: other weights at the 0.2 share;
   ``dher_f0.2``: no weights at all (DHER, i.e. RDHER at (1, 1)).
+- ``dher_f0.8``, ``rdher_f0.8``: DHER, and RDHER at the paper's pair, at the authors' share
+  written out, for a profile whose budget takes another (``solve``: ``preset=fast``'s 0.2, so
+  that its benchmark's DHER and RDHER are at 0.2 and these are the paper's).
 - ``rdher_clip``: the paper's pair and share with every row's critic target clipped to
   baselines' [−1/(1−γ), 0] (``target_clip=unweighted``), what weighting the sampled rewards in
   the baselines-based code the authors built on would give, instead of each row's own range.
@@ -57,6 +60,12 @@ SETTINGS: dict[str, NamedSetting] = {
     "rdher_f0.2_lr1_lh2": ("RDHER (1, 2), share 0.2", "rdher", ((1.0, 2.0),),
                            ("dher_fraction=0.2",), None),
     "dher_f0.2": ("DHER, share 0.2", "dher", None, ("dher_fraction=0.2",), None),
+    # The authors' share written out, for a profile whose budget takes another (solve:
+    # preset=fast's 0.2): the paper's DHER and RDHER beside the benchmark's.
+    "dher_f0.8": ("DHER, share 0.8 (the authors')", "dher", None, ("dher_fraction=0.8",),
+                  None),
+    "rdher_f0.8": ("RDHER {pair}, share 0.8 (the authors')", "rdher", None,
+                   ("dher_fraction=0.8",), None),
     "dher_plain": ("DHER, share 0.8, plain mix (replay_k=0)", "dher", None, ("replay_k=0",),
                    None),
     "rdher_clip": ("RDHER (the paper's pair), share 0.8, unweighted clip", "rdher", None,
