@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from rdher_jax import buffer as rb
 
@@ -90,3 +91,23 @@ def scripted_action(task: str, obs: dict) -> jnp.ndarray:
     high = grip[..., 2:3] > z + 0.02
     target = jnp.where(far, hover, jnp.where(high, low, push))
     return jnp.concatenate([_toward(grip, target, gain), jnp.zeros_like(z)], -1)
+
+
+# --- metrics.csv rows of two runs ---------------------------------------------------------------
+
+
+def assert_same_rows(a, b, exact=False):
+    """Rows of two metrics.csv files: equal, or (``exact`` False) equal to the float rounding
+    of two programs (a vmapped sweep against a run of its own); counts always exactly, wall
+    time aside."""
+    assert len(a) == len(b) > 0
+    for ra, rb_ in zip(a, b, strict=True):
+        assert ra.keys() == rb_.keys()
+        for k in ra:
+            if k == "wall_time":
+                continue
+            if exact or k in ("epoch", "env_steps", "updates"):
+                assert ra[k] == rb_[k], (k, ra, rb_)
+            else:
+                np.testing.assert_allclose(float(ra[k]), float(rb_[k]), rtol=1e-3, atol=1e-5,
+                                           equal_nan=True, err_msg=k)

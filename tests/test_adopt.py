@@ -30,6 +30,7 @@ sys.path.insert(0, str(EXP))
 
 import benchmark  # noqa: E402
 import profiles  # noqa: E402
+from helpers import assert_same_rows  # noqa: E402
 
 TINY = [f"{k}={v}" for k, v in profiles.TINY.settings.items()]
 PIECE = "benchmark/tiny/FetchReach/her.s1-1"
@@ -40,22 +41,6 @@ quiet = lambda *a, **k: None  # noqa: E731
 def read_csv(path):
     with open(path, newline="", encoding="utf-8") as f:
         return list(csv.DictReader(f))
-
-
-def close_rows(a, b):
-    """The rows of two metrics.csv files agree: counts exactly, the rest to float rounding of
-    two programs (tests/test_sweep.py's tolerance); wall time aside."""
-    assert len(a) == len(b) > 0
-    for ra, rb in zip(a, b, strict=True):
-        assert ra.keys() == rb.keys()
-        for k in ra:
-            if k == "wall_time":
-                continue
-            if k in ("epoch", "env_steps", "updates"):
-                assert ra[k] == rb[k], (k, ra, rb)
-            else:
-                np.testing.assert_allclose(float(ra[k]), float(rb[k]), rtol=1e-3, atol=1e-5,
-                                           equal_nan=True, err_msg=k)
 
 
 def train(run_dir, *args):
@@ -151,8 +136,8 @@ def test_adopted_piece_resumes_and_is_collected(made):
     single = read_csv(made["single"] / "metrics.csv")
     assert [r["epoch"] for r in rows] == ["1", "2"]
     assert rows[0] == single[0]
-    close_rows(rows, read_csv(made["root"] / "continued" / "metrics.csv"))
-    close_rows(rows, read_csv(made["direct"] / RUN / "metrics.csv"))
+    assert_same_rows(rows, read_csv(made["root"] / "continued" / "metrics.csv"))
+    assert_same_rows(rows, read_csv(made["direct"] / RUN / "metrics.csv"))
     collected = made["out"] / "benchmark/tiny/FetchReach/her"
     assert (collected / "s1.csv").read_text() == (made["piece"] / RUN / "metrics.csv").read_text()
     meta = json.loads((collected / "run_info.json").read_text())

@@ -9,6 +9,7 @@ import sys
 
 import numpy as np
 import pytest
+from helpers import assert_same_rows
 
 from rdher_jax import driver, executor, outputs
 from rdher_jax import sweep as sweep_mod
@@ -35,21 +36,6 @@ def run_sweep(sweep_dir, *extra, **kw):
                                        f"sweep_dir={sweep_dir}", *extra]).plan
     kw.setdefault("log", lambda *a: None)
     return sweep_mod.sweep(spec, **kw)
-
-
-def assert_same_rows(a, b, exact=False):
-    """Rows of two metrics.csv files: equal, or equal to float tolerance; wall time aside."""
-    assert len(a) == len(b) > 0
-    for ra, rb in zip(a, b, strict=True):
-        assert ra.keys() == rb.keys()
-        for k in ra:
-            if k == "wall_time":
-                continue
-            if exact or k in ("epoch", "env_steps", "updates"):
-                assert ra[k] == rb[k], (k, ra, rb)
-            else:
-                np.testing.assert_allclose(float(ra[k]), float(rb[k]), rtol=1e-3, atol=1e-5,
-                                           equal_nan=True, err_msg=k)
 
 
 def _popen(args, **kw):
