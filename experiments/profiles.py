@@ -439,13 +439,19 @@ def _rel(p: Path) -> str:
 # EVAL_SEED + the run's seed: root keys that no training run (seeds 0, 1, ...) starts from.
 EVAL_EPISODES = 100
 EVAL_SEED = 1_000_000
+# --precise-episodes: the same policy tested once more on many episodes, seeded with
+# PRECISE_SEED + the run's seed (apart from training, from the retest above and from the
+# selection's 2,000,000 + seed), where a 100-episode retest's binomial noise (about 2 points of
+# standard error near 95%) hides whether a seed plateaus or was unlucky.
+PRECISE_SEED = 3_000_000
 
 
 def best_policy_eval(run_dir: Path, seed: int, episodes: int,
-                     cached: dict[str, Any] | None = None) -> dict[str, Any] | None:
-    """Test success of ``run_dir``'s best-policy checkpoint over ``episodes`` episodes with the
-    evaluation seed of run seed ``seed`` (``rdher_jax.evaluate``); ``cached`` is returned as it
-    is when it was made for the same checkpoint epoch, episodes and seed. None without a
+                     cached: dict[str, Any] | None = None,
+                     base: int = EVAL_SEED) -> dict[str, Any] | None:
+    """Test success of ``run_dir``'s best-policy checkpoint over ``episodes`` episodes seeded
+    with ``base`` + the run's seed ``seed`` (``rdher_jax.evaluate``); ``cached`` is returned as
+    it is when it was made for the same checkpoint epoch, episodes and seed. None without a
     best-policy checkpoint."""
     from rdher_jax.checkpoint import Checkpointer
     from rdher_jax.evaluate import evaluate
@@ -453,10 +459,10 @@ def best_policy_eval(run_dir: Path, seed: int, episodes: int,
     best = Checkpointer(run_dir, read_only=True).policy_epoch()
     if best is None:
         return None
-    key = {"epoch": best, "episodes": episodes, "seed": EVAL_SEED + seed}
+    key = {"epoch": best, "episodes": episodes, "seed": base + seed}
     if cached and all(cached.get(k) == v for k, v in key.items()):
         return cached
-    r = evaluate(run_dir, episodes=episodes, seed=EVAL_SEED + seed)
+    r = evaluate(run_dir, episodes=episodes, seed=base + seed)
     return {**key, "success": r["success"], "train_test_success": r["train_test_success"]}
 
 
@@ -487,7 +493,8 @@ def _collected_pieces(meta: Mapping[str, Any]) -> list[dict[str, Any]]:
 
 
 def collect(job: Job, out_root: Path, command: str, log=print,
-            eval_episodes: int = EVAL_EPISODES, keep_collected: bool = False) -> list[Path]:
+            eval_episodes: int = EVAL_EPISODES, keep_collected: bool = False,
+            precise_episodes: int = 0) -> list[Path]:
     """Copy each run's metrics.csv and a trimmed run_info.json into
     ``<out_root>/<kind>/<profile>/<task>/<setting>/`` (``s<seed>.csv``, ``run_info.json``).
 
@@ -495,6 +502,9 @@ def collect(job: Job, out_root: Path, command: str, log=print,
     ``eval_episodes`` fresh episodes (:func:`best_policy_eval`; 0: not tested), recorded in
     run_info.json beside the best 10-episode epoch of its metrics. Only in a one-process run:
     the checkpoints of a multi-process sweep are tested by ``--collect-only`` afterwards.
+    ``precise_episodes`` > 0: the same policy is also tested on that many episodes of a seed
+    stream of their own (:data:`PRECISE_SEED`), recorded as ``best_policy_precise``; a test
+    made before is kept while its run is unchanged, whatever this call's value.
 
     A setting run in pieces (``--first-seed``) is collected from all of them: each seed below
     ``job.seeds`` (a later piece, perhaps still running, waits for a collect that names it) from
@@ -588,6 +598,18 @@ def collect(job: Job, out_root: Path, command: str, log=print,
             elif cached is not None and done and \
                     before.get(name, {}).get("epochs") == runs[name]["epochs"]:
                 runs[name]["best_policy"] = cached  # not tested now; the run has not changed
+            cached = before.get(name, {}).get("best_policy_precise")
+            if done and precise_episodes > 0 and distributed.count() == 1:
+                ev = best_policy_eval(r["_dir"] / r["run"], int(r["seed"]), precise_episodes,
+                                      cached, base=PRECISE_SEED)
+                if ev is not None:
+                    if ev is not cached:
+                        log(f"[{job.task} {s.name} {name}] best policy (epoch {ev['epoch']}) "
+                            f"on {precise_episodes} more episodes: {ev['success']:.3f}")
+                    runs[name]["best_policy_precise"] = ev
+            elif cached is not None and done and \
+                    before.get(name, {}).get("epochs") == runs[name]["epochs"]:
+                runs[name]["best_policy_precise"] = cached  # the same policy, tested before
         kept: list[dict[str, Any]] = []  # pieces collected before whose directories are gone
         if keep_collected and before_meta:
             for piece in _collected_pieces(before_meta):
@@ -739,6 +761,11 @@ def add_common_args(ap: Any) -> None:
     ap.add_argument("--eval-episodes", type=int, default=EVAL_EPISODES, metavar="N",
                     help="test each finished run's best policy on N episodes with seeds no "
                     f"training run uses (default {EVAL_EPISODES}; 0: do not)")
+    ap.add_argument("--precise-episodes", type=int, default=0, metavar="N",
+                    help="also test each finished run's best policy on N more episodes of a "
+                    "seed stream of their own (e.g. 1000: a 100-episode retest's noise is "
+                    "about 2 points near 95%%), kept in run_info.json and reported beside the "
+                    "retest (default 0: not; a test made before is kept)")
     ap.add_argument("--coordinator", default=None, metavar="HOST:PORT",
                     help="multi-process: process 0's coordination address; with "
                     "--num-processes and --process-id, each process started with the same "
@@ -836,8 +863,10 @@ def run_experiment(kind: str, script: str, args: Any, argv: Sequence[str],
             v = getattr(args, name)
             if v is not None and v < 1:
                 raise ConfigError(f"--{name} must be >= 1, got {v}")
-        if args.eval_episodes < 0:
-            raise ConfigError(f"--eval-episodes must be >= 0, got {args.eval_episodes}")
+        for name in ("eval_episodes", "precise_episodes"):
+            if getattr(args, name) < 0:
+                raise ConfigError(f"--{name.replace('_', '-')} must be >= 0, got "
+                                  f"{getattr(args, name)}")
         if args.adopt is not None:
             return adopt_command(kind, args, sweeps)
         if args.status:
@@ -877,7 +906,8 @@ def run_experiment(kind: str, script: str, args: Any, argv: Sequence[str],
                             log=print if main else (lambda *a, **k: None))
                 if not args.dry_run and main:
                     collect(job, args.out, command, eval_episodes=args.eval_episodes,
-                            keep_collected=args.keep_collected)
+                            keep_collected=args.keep_collected,
+                            precise_episodes=args.precise_episodes)
             if not args.dry_run and main:
                 import report
 

@@ -23,7 +23,8 @@ Names. A *setting* is ``<kind>/<task>/<setting>`` with the kind and profile abbr
 ``FetchPush``, ...), e.g. ``bp/slide/rdher`` is ``experiments/results/benchmark/paper/FetchSlide/
 rdher``. A *measure* is one of report.py's per-seed figures (:func:`report.per_seed`): ``best``
 (max over epochs of test success), ``final`` (mean of the last 3 epochs), ``mean`` (mean over
-all epochs), ``policy`` (the best policy retested); all in %. Also ``combined`` (the share of
+all epochs), ``policy`` (the best policy retested), ``precise`` (the same policy on more
+episodes, ``--precise-episodes``); all in %. Also ``combined`` (the share of
 DHER-combined rows in a batch, the CSVs' ``frac_dher``, mean of the last 3 epochs, %),
 ``combined_run`` (the same over every epoch) and the bias columns (``bias_real``,
 ``bias_unw_her``, ...: mean of the last 3 epochs, as summary.md's diagnostic). Also ``w1``,
@@ -93,7 +94,7 @@ KINDS = {"ac": "ablation/cpu", "ap": "ablation/paper", "bc": "benchmark/cpu",
          "yp": "beyond/paper", "ys": "beyond/solve", "mc": "moving/cpu"}
 TASKS = {"reach": "FetchReach", "push": "FetchPush", "slide": "FetchSlide",
          "pnp": "FetchPickAndPlace", "pushm": "FetchPushMoving", "reachm": "FetchReachMoving"}
-MEASURES = ("best", "final", "mean", "policy")
+MEASURES = ("best", "final", "mean", "policy", "precise")
 
 
 def markdown_files(root: Path = ROOT) -> list[Path]:

@@ -124,6 +124,50 @@ def test_best_policy_retested_on_fresh_episodes(results):
     assert "best policy retested" not in (results["out"] / "ablation/tiny/summary.md").read_text()
 
 
+def test_precise_episodes_retest_the_same_policy_on_a_stream_of_their_own(results, tmp_path):
+    """--precise-episodes N (here with --collect-only, as on a finished study): each finished
+    run's best policy tested on N episodes seeded PRECISE_SEED + seed, beside the unchanged
+    retest, in run_info.json, summary.csv and the solve table's column; kept by a later
+    collect without the flag; refused below 0."""
+    from rdher_jax.evaluate import evaluate
+
+    out = tmp_path / "out"
+    shutil.copytree(results["out"], out)
+    d = out / "benchmark/tiny/FetchReach/her"
+    before = json.loads((d / "run_info.json").read_text())
+    common = ["--profile", "tiny", "--out", str(out), "--runs-dir", str(results["runs"]),
+              "--no-progress", "--algos", "her", "--collect-only"]
+    assert benchmark.main([*common, "--eval-episodes", str(EVAL_EPISODES),
+                           "--precise-episodes", "3"]) == 0
+    meta = json.loads((d / "run_info.json").read_text())
+    sweep_dir = results["runs"] / "benchmark/tiny/FetchReach/her"
+    names = {r["seed"]: r["run"] for r in
+             json.loads((sweep_dir / "summary.json").read_text())["runs"]}
+    got = []
+    for seed in (0, 1):
+        run = meta["runs"][f"s{seed}"]
+        assert run["best_policy"] == before["runs"][f"s{seed}"]["best_policy"]
+        ev = run["best_policy_precise"]
+        assert ev["episodes"] == 3 and ev["seed"] == profiles.PRECISE_SEED + seed
+        assert ev["epoch"] == run["best_policy"]["epoch"]
+        again = evaluate(sweep_dir / names[seed], episodes=3, seed=profiles.PRECISE_SEED + seed)
+        assert again["success"] == ev["success"]
+        got.append(ev["success"])
+    row = next(r for r in read_csv(out / "benchmark/tiny/summary.csv") if r["setting"] == "her")
+    assert float(row["precise_mean"]) == pytest.approx(sum(got) / 2, abs=1e-6)
+    assert row["precise_seeds"] == "2" and row["precise_episodes"] == "3"
+    # Kept by a collect that does not ask for it (the runs have not changed).
+    assert benchmark.main([*common, "--eval-episodes", str(EVAL_EPISODES)]) == 0
+    assert json.loads((d / "run_info.json").read_text())["runs"] == meta["runs"]
+    # The solve profile's goal table shows it beside the retest.
+    s = report.read_setting(d)
+    lines = "\n".join(report._goal_lines([s]))
+    assert "retest, more episodes" in lines and "(3; 2 seeds)" in lines
+    assert "more episodes" not in "\n".join(report._goal_lines(
+        [dataclasses.replace(s, meta={**s.meta, "runs": before["runs"]})]))
+    assert benchmark.main([*common, "--precise-episodes", "-1"]) == 2
+
+
 def test_ablation_reads_her_from_the_benchmark(results, tmp_path, capsys):
     """--her-from-benchmark: the ablation's HER curve is the benchmark's HER sweep, read and
     never run; the same program and budget as the ablation's own HER sweep, so the same rows."""
