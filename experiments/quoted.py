@@ -239,24 +239,7 @@ def _versus(a: str, b: str, measure: str, test: list[str]) -> float:
     return p if test[-1:] == ["p"] else scale * diff
 
 
-def seeds_for_power(diff: float, sd_a: float, sd_b: float | None, power: float = 0.8,
-                    alpha: float = 0.05) -> float:
-    """The fewest seeds per setting for a two-sided t-test at ``alpha`` to detect ``diff`` with
-    ``power``, by the noncentral t: the two-sample test of two settings with sample stds ``sd_a``
-    and ``sd_b`` at n seeds each (2n - 2 degrees of freedom, as statsmodels' TTestIndPower), or
-    with ``sd_b`` None the paired test whose per-seed differences have std ``sd_a``."""
-    from scipy import stats as sps
-
-    for n in range(2, 10_000):
-        if sd_b is None:
-            se, df = sd_a / math.sqrt(n), n - 1
-        else:
-            se, df = math.sqrt((sd_a ** 2 + sd_b ** 2) / n), 2 * n - 2
-        crit = float(sps.t.ppf(1 - alpha / 2, df))
-        ncp = abs(diff) / se
-        if float(sps.nct.sf(crit, df, ncp) + sps.nct.cdf(-crit, df, ncp)) >= power:
-            return float(n)
-    return math.inf
+seeds_for_power = report.seeds_for_power  # where the summaries' tables use it too
 
 
 def _pieces(ref: str) -> list[float]:

@@ -254,6 +254,26 @@ def paired(xs: Mapping[int, float], ys: Mapping[int, float]) -> tuple[float, flo
     return diff, p, len(common)
 
 
+def seeds_for_power(diff: float, sd_a: float, sd_b: float | None, power: float = 0.8,
+                    alpha: float = 0.05) -> float:
+    """The fewest seeds per setting for a two-sided t-test at ``alpha`` to detect ``diff`` with
+    ``power``, by the noncentral t: the two-sample test of two settings with sample stds ``sd_a``
+    and ``sd_b`` at n seeds each (2n - 2 degrees of freedom, as statsmodels' TTestIndPower), or
+    with ``sd_b`` None the paired test whose per-seed differences have std ``sd_a``."""
+    from scipy import stats as sps
+
+    for n in range(2, 10_000):
+        if sd_b is None:
+            se, df = sd_a / math.sqrt(n), n - 1
+        else:
+            se, df = math.sqrt((sd_a ** 2 + sd_b ** 2) / n), 2 * n - 2
+        crit = float(sps.t.ppf(1 - alpha / 2, df))
+        ncp = abs(diff) / se
+        if float(sps.nct.sf(crit, df, ncp) + sps.nct.cdf(-crit, df, ncp)) >= power:
+            return float(n)
+    return math.inf
+
+
 def n_seeds(n: int) -> str:
     """'1 seed', '3 seeds'."""
     return f"{n} seed{'s' * (n != 1)}"
@@ -275,6 +295,62 @@ def vs_her(s: SettingData, data: Sequence[SettingData]) -> dict[str, tuple[float
         return None
     mine, ref = per_seed(s), per_seed(her)
     return {k: welch(list(mine[k].values()), list(ref[k].values())) for k in ("final", "mean")}
+
+
+PAIRED_MEASURES = (("policy", "best policy retested"), ("final", "final"),
+                   ("mean", "over all epochs"))
+
+
+def vs_her_paired(s: SettingData, data: Sequence[SettingData]
+                  ) -> dict[str, tuple[float, float, int, float]] | None:
+    """``s`` against the vanilla-HER setting of its task paired by seed, per measure of
+    :data:`PAIRED_MEASURES`: (mean per-seed difference, paired p, common seeds, seeds per
+    setting a paired t-test at 5% needs to detect that difference with 80% power at the spread
+    of the differences seen: nan where it cannot be said). None for HER itself or where the
+    task has no HER."""
+    her = None if s.name == "her" else next(
+        (r for r in data if r.task == s.task and r.name == "her" and r.runs), None)
+    if her is None:
+        return None
+    mine, ref = per_seed(s), per_seed(her)
+    out = {}
+    for k, _ in PAIRED_MEASURES:
+        diff, p, n = paired(mine[k], ref[k])
+        common = sorted(set(mine[k]) & set(ref[k]))
+        st = stat([_rate(mine[k][c]) - _rate(ref[k][c]) for c in common])
+        need = seeds_for_power(st.mean, st.std, None) \
+            if n >= 2 and math.isfinite(st.std) and st.std > 0 and st.mean != 0 else math.nan
+        out[k] = (diff, p, n, need)
+    return out
+
+
+def _paired_lines(data: Sequence[SettingData]) -> list[str]:
+    """The 'Against HER, paired by seed' section (empty where no setting has a HER)."""
+    rows = []
+    for s in data:
+        vs = vs_her_paired(s, data)
+        if vs is None:
+            continue
+        cells = []
+        for k, _ in PAIRED_MEASURES:
+            diff, p, n, need = vs[k]
+            cells += [vs_cell(diff, p) if n else "-",
+                      "-" if not math.isfinite(need) else f"{need:.0f}"]
+        rows.append([s.task, s.meta.get("label", s.name),
+                     str(max(vs[k][2] for k, _ in PAIRED_MEASURES)), *cells])
+    if not rows:
+        return []
+    head = ["task", "setting", "seeds"]
+    for _, h in PAIRED_MEASURES:
+        head += [f"{h}: vs HER (paired p)", "seeds for 80% power"]
+    return ["## Against HER, paired by seed", "",
+            "Each setting minus HER on the same task over the seeds both hold (one seed gives "
+            "the same test goals epoch by epoch whatever the setting, so a per-seed difference "
+            "cancels the luck of the test set): the mean per-seed difference in points with the "
+            "paired t-test's two-sided p, and the seeds per setting a paired t-test at 5% would "
+            "need to detect a difference of that size with 80% power at the spread of the "
+            "per-seed differences seen ('-' where it cannot be said: under 2 common seeds, no "
+            "spread or no difference).", "", *_md_table(head, rows), ""]
 
 
 def window_seeds(s: SettingData) -> list[tuple[str, dict[int, float]]]:
@@ -559,6 +635,8 @@ def summary_markdown(kind: str, profile: str, data: Sequence[SettingData]) -> st
         rows.append(row)
     out += _md_table(head, rows)
     out.append("")
+
+    out += _paired_lines(data)
 
     if kind in ("moving", "beyond"):
         out += ["## Over the budget: mean test success per env-step window (%)", "",

@@ -703,6 +703,33 @@ def _setting_dir(root, name, finals, best_policy=None):
     return d
 
 
+def test_against_her_paired_by_seed(tmp_path):
+    """The summaries' 'Against HER, paired by seed' section: per measure the mean per-seed
+    difference with scipy's paired t-test, over the seeds both settings hold, and the seeds a
+    paired test needs for 80% power (fewer where the differences vary less)."""
+    from scipy import stats as sps
+
+    her = report.read_setting(_setting_dir(tmp_path, "her", [0.5, 0.7, 0.4, 0.6],
+                                           best_policy=[0.5, 0.6, 0.4, 0.7]))
+    a = report.read_setting(_setting_dir(tmp_path, "a", [0.9, 0.8, 1.0],
+                                         best_policy=[0.85, 0.8, 0.95]))
+    vs = report.vs_her_paired(a, [her, a])
+    assert report.vs_her_paired(her, [her, a]) is None
+    for k, xs, ys in (("final", [0.9, 0.8, 1.0], [0.5, 0.7, 0.4]),
+                      ("policy", [0.85, 0.8, 0.95], [0.5, 0.6, 0.4])):
+        diff, p, n, need = vs[k]
+        assert n == 3 and math.isclose(diff, sum(xs) / 3 - sum(ys) / 3)
+        assert math.isclose(p, sps.ttest_rel(xs, ys).pvalue)
+        d = [x - y for x, y in zip(xs, ys, strict=True)]
+        assert need == report.seeds_for_power(sum(d) / 3, float(np.std(d, ddof=1)), None)
+        assert 2 <= need < 10
+    md = "\n".join(report._paired_lines([her, a]))
+    assert "## Against HER, paired by seed" in md
+    diff, p, _, need = vs["final"]
+    assert f"| {report.vs_cell(diff, p)} | {need:.0f} |" in md
+    assert report._paired_lines([a]) == []  # no HER on the task: no section
+
+
 def test_compare_is_welch_between_any_two_settings(tmp_path, capsys, one_line_error):
     from scipy import stats as sps
 
