@@ -327,21 +327,24 @@ def vs_her_paired(s: SettingData, data: Sequence[SettingData]
 def _paired_lines(data: Sequence[SettingData]) -> list[str]:
     """The 'Against HER, paired by seed' section (empty where no setting has a HER)."""
     rows = []
+    # The retest's columns only where some run was retested.
+    measures = [(k, h) for k, h in PAIRED_MEASURES
+                if k != "policy" or any(policy_episodes(s) for s in data)]
     for s in data:
         vs = vs_her_paired(s, data)
         if vs is None:
             continue
         cells = []
-        for k, _ in PAIRED_MEASURES:
+        for k, _ in measures:
             diff, p, n, need = vs[k]
             cells += [vs_cell(diff, p) if n else "-",
                       "-" if not math.isfinite(need) else f"{need:.0f}"]
         rows.append([s.task, s.meta.get("label", s.name),
-                     str(max(vs[k][2] for k, _ in PAIRED_MEASURES)), *cells])
+                     str(max(vs[k][2] for k, _ in measures)), *cells])
     if not rows:
         return []
     head = ["task", "setting", "seeds"]
-    for _, h in PAIRED_MEASURES:
+    for _, h in measures:
         head += [f"{h}: vs HER (paired p)", "seeds for 80% power"]
     return ["## Against HER, paired by seed", "",
             "Each setting minus HER on the same task over the seeds both hold (one seed gives "
