@@ -162,7 +162,7 @@ def test_precise_episodes_retest_the_same_policy_on_a_stream_of_their_own(result
     # The solve profile's goal table shows it beside the retest.
     s = report.read_setting(d)
     lines = "\n".join(report._goal_lines([s]))
-    assert "retest, more episodes" in lines and "(3; 2 seeds)" in lines
+    assert "retest, more episodes" in lines and ", 3 episodes |" in lines
     assert "more episodes" not in "\n".join(report._goal_lines(
         [dataclasses.replace(s, meta={**s.meta, "runs": before["runs"]})]))
     assert benchmark.main([*common, "--precise-episodes", "-1"]) == 2
