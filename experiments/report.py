@@ -576,16 +576,25 @@ def summary_markdown(kind: str, profile: str, data: Sequence[SettingData]) -> st
                                                                  if s.name == a))
         out.append("Ours: mean over seeds; in parentheses the paper's Table 2.")
         out.append("")
-        rows = []
-        for task, ss in tasks.items():
-            have = {s.name: s for s in ss}
-            cells = []
-            for a in algos:
-                mine = pct(stats[(task, a)]["best"].mean) if a in have else "-"
-                ref = paper_best(task, a)
-                cells.append(mine + (f" ({ref})" if ref is not None else ""))
-            rows.append([task, *cells])
-        out += _md_table(["task", *[data_label(a, data) for a in algos]], rows)
+        def table2(measure: str) -> list[str]:
+            rows = []
+            for task, ss in tasks.items():
+                have = {s.name: s for s in ss}
+                cells = []
+                for a in algos:
+                    st = stats[(task, a)][measure] if a in have else None
+                    mine = pct(st.mean) if st is not None and st.n else "-"
+                    ref = paper_best(task, a)
+                    cells.append(mine + (f" ({ref})" if ref is not None else ""))
+                rows.append([task, *cells])
+            return _md_table(["task", *[data_label(a, data) for a in algos]], rows)
+
+        out += table2("best")
+        if any(policy_episodes(s) for s in data):
+            out += ["", "The same with each run's best policy retested on new episodes (the "
+                    "paper's 'best-learned policy' without the luck of the best of many "
+                    "10-episode tests; '-' where no run of the cell is retested yet):", "",
+                    *table2("policy")]
     else:
         names = []
         for s in data:
