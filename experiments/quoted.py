@@ -31,7 +31,8 @@ DHER-combined rows in a batch, the CSVs' ``frac_dher``, mean of the last 3 epoch
 ``w2``, ``w3``: the mean test success over summary.md's env-step windows (report.windows: the
 first 40%, the next 40%, the last 20% of the steps), %; ``to0.5``: the env steps to the first
 test at 0.5 or above, ``to0.9m3`` to the first trailing mean of 3 tests at 0.9 (bench_learning's
-rule; a seed that never gets there counts its last env steps, a lower bound).
+rule; a seed that never gets there counts its last env steps, a lower bound); ``to0.9m3_min``
+the same in minutes of the training clock.
 
 - ``S:M`` the mean over seeds of measure M of setting S; ``S:M:sd`` its sample std, ``S:M:lo``
   / ``S:M:hi`` its 95% t interval clipped to [0, 100] (as summary.md prints it), ``S:M:n`` the
@@ -129,6 +130,8 @@ def run_info(ref: str) -> dict:
 
 COLUMN_MEASURES = ("combined", "combined_run", *report.BIAS_COLS)
 HIT = re.compile(r"to(\d*\.?\d+)(m3)?")  # to0.5: first test at 0.5; to0.9m3: trailing mean of 3
+# to0.9m3_min: the same, in minutes of the training clock (metrics.csv's wall_time)
+HIT_MIN = re.compile(r"to(\d*\.?\d+)(m3)?_min")
 
 
 def percent(measure: str) -> bool:
@@ -137,13 +140,15 @@ def percent(measure: str) -> bool:
         re.fullmatch(r"w\d", measure))
 
 
-def first_hit(rows: list[dict[str, str]], threshold: float, window: int = 1) -> float | None:
-    """bench_learning's rule: env steps of the first epoch whose test success (``window`` = 1)
-    or trailing mean of ``window`` epochs reaches ``threshold``; None if none does."""
+def first_hit(rows: list[dict[str, str]], threshold: float, window: int = 1,
+              field: str = "env_steps") -> float | None:
+    """bench_learning's rule: env steps (``field``; ``wall_s``: seconds of the training clock)
+    of the first epoch whose test success (``window`` = 1) or trailing mean of ``window`` epochs
+    reaches ``threshold``; None if none does."""
     import bench_learning
 
     got = bench_learning.first_hit(rows, threshold, window) or {}
-    return float(got[key]["env_steps"]) if (key := "single" if window == 1 else "window") in got \
+    return float(got[key][field]) if (key := "single" if window == 1 else "window") in got \
         else None
 
 
@@ -155,7 +160,8 @@ def seeds(ref: str, measure: str) -> dict[int, float]:
     finite values over the last 3 epochs, as summary.md's diagnostic; ``w1``-``w3`` the mean
     test success over summary.md's env-step windows, in %; ``to<x>`` the env steps to the first
     test at ``x`` or above, ``to<x>m3`` to the first trailing mean of 3 tests there (a seed that
-    never gets there counts its last env steps, a lower bound)."""
+    never gets there counts its last env steps, a lower bound), ``to<x>_min`` / ``to<x>m3_min``
+    the same in minutes of the training clock."""
     if m := re.fullmatch(r"w(\d)", measure):
         ws = report.window_seeds(setting(ref))
         if not 1 <= int(m[1]) <= len(ws):
@@ -164,11 +170,15 @@ def seeds(ref: str, measure: str) -> dict[int, float]:
     if m := HIT.fullmatch(measure):
         return {k: first_hit(rows, float(m[1]), 3 if m[2] else 1) or float(rows[-1]["env_steps"])
                 for k, rows in setting(ref).runs.items()}
+    if m := HIT_MIN.fullmatch(measure):
+        return {k: (first_hit(rows, float(m[1]), 3 if m[2] else 1, "wall_s")
+                    or float(rows[-1]["wall_time"])) / 60
+                for k, rows in setting(ref).runs.items()}
     if measure in MEASURES:
         return {k: 100 * v for k, v in report.per_seed(setting(ref))[measure].items()}
     if measure not in COLUMN_MEASURES:
         raise KeyError(f"no measure {measure!r} (one of {', '.join(MEASURES + COLUMN_MEASURES)}, "
-                       "w<k>, to<x>, to<x>m3)")
+                       "w<k>, to<x>, to<x>m3, to<x>_min, to<x>m3_min)")
     col = "frac_dher" if measure.startswith("combined") else measure
     scale = 100 if col == "frac_dher" else 1
     last = None if measure == "combined_run" else report.LAST

@@ -117,6 +117,21 @@ def test_bench_learning_figures_and_retests():
         quoted.value("bl/pnp-fast-600k:best")  # the seed goes last
 
 
+def test_setting_minutes_to_a_threshold_are_the_hits_training_clock():
+    """``to<x>m3_min`` of a setting: the training clock (wall_time) of the epoch where
+    ``to<x>m3`` finds the first trailing mean of 3 at x, in minutes, as summary.md's goal table
+    prints it."""
+    ref = "bs/push/her"
+    if not (EXP / "results" / "benchmark/solve/FetchPush/her").is_dir():
+        pytest.skip("no committed solve results")
+    rows = quoted.setting(ref).runs[0]
+    steps = quoted.value(f"{ref}:to0.9m3:s0")
+    hit = next(r for r in rows if float(r["env_steps"]) == steps)
+    assert quoted.value(f"{ref}:to0.9m3_min:s0") == pytest.approx(float(hit["wall_time"]) / 60)
+    md = (EXP / "results" / "benchmark/solve/summary.md").read_text()
+    assert f"| {float(hit['wall_time']) / 60:.1f} |" in md
+
+
 def test_bench_learning_selection_figures(tmp_path, monkeypatch):
     """``selected`` / ``selbest``: the selection episodes' success of the chosen policy and of
     the best test epoch's (of equal tests, the later), from the run's recorded selection."""
