@@ -586,30 +586,24 @@ def collect(job: Job, out_root: Path, command: str, log=print,
                           "status": r["status"],
                           "wall_clock_s": float(last["wall_time"])}
             done = int(last["epoch"]) >= job.epochs or r["status"] != "ok"
-            cached = before.get(name, {}).get("best_policy")
-            if done and eval_episodes > 0 and distributed.count() == 1:
-                ev = best_policy_eval(r["_dir"] / r["run"], int(r["seed"]), eval_episodes,
-                                      cached)
-                if ev is not None:
-                    if ev is not cached:
-                        log(f"[{job.task} {s.name} {name}] best policy (epoch {ev['epoch']}) "
-                            f"on {eval_episodes} test episodes: {ev['success']:.3f}")
-                    runs[name]["best_policy"] = ev
-            elif cached is not None and done and \
-                    before.get(name, {}).get("epochs") == runs[name]["epochs"]:
-                runs[name]["best_policy"] = cached  # not tested now; the run has not changed
-            cached = before.get(name, {}).get("best_policy_precise")
-            if done and precise_episodes > 0 and distributed.count() == 1:
-                ev = best_policy_eval(r["_dir"] / r["run"], int(r["seed"]), precise_episodes,
-                                      cached, base=PRECISE_SEED)
-                if ev is not None:
-                    if ev is not cached:
-                        log(f"[{job.task} {s.name} {name}] best policy (epoch {ev['epoch']}) "
-                            f"on {precise_episodes} more episodes: {ev['success']:.3f}")
-                    runs[name]["best_policy_precise"] = ev
-            elif cached is not None and done and \
-                    before.get(name, {}).get("epochs") == runs[name]["epochs"]:
-                runs[name]["best_policy_precise"] = cached  # the same policy, tested before
+            # The retest, and the longer test of the same policy (each kept from before while
+            # the run has not changed, whatever this call asks for).
+            for key, episodes, base, what in (
+                    ("best_policy", eval_episodes, EVAL_SEED, "test"),
+                    ("best_policy_precise", precise_episodes, PRECISE_SEED, "more")):
+                cached = before.get(name, {}).get(key)
+                if done and episodes > 0 and distributed.count() == 1:
+                    ev = best_policy_eval(r["_dir"] / r["run"], int(r["seed"]), episodes,
+                                          cached, base=base)
+                    if ev is not None:
+                        if ev is not cached:
+                            log(f"[{job.task} {s.name} {name}] best policy (epoch "
+                                f"{ev['epoch']}) on {episodes} {what} episodes: "
+                                f"{ev['success']:.3f}")
+                        runs[name][key] = ev
+                elif cached is not None and done and \
+                        before.get(name, {}).get("epochs") == runs[name]["epochs"]:
+                    runs[name][key] = cached  # not tested now; the run has not changed
         kept: list[dict[str, Any]] = []  # pieces collected before whose directories are gone
         if keep_collected and before_meta:
             for piece in _collected_pieces(before_meta):

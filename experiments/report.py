@@ -286,11 +286,16 @@ def vs_cell(diff: float, p: float) -> str:
     return d if not math.isfinite(p) else f"{d} (p {p:.2g})"
 
 
+def _her_of(s: SettingData, data: Sequence[SettingData]) -> SettingData | None:
+    """The vanilla-HER setting of ``s``'s task in ``data`` (None for HER itself or none)."""
+    return None if s.name == "her" else next(
+        (r for r in data if r.task == s.task and r.name == "her" and r.runs), None)
+
+
 def vs_her(s: SettingData, data: Sequence[SettingData]) -> dict[str, tuple[float, float]] | None:
     """``s`` against the vanilla-HER setting of the same task, per seed-level measure ('final',
     'mean'): (difference of means, Welch p). None for HER itself or where the task has no HER."""
-    her = None if s.name == "her" else next(
-        (r for r in data if r.task == s.task and r.name == "her" and r.runs), None)
+    her = _her_of(s, data)
     if her is None:
         return None
     mine, ref = per_seed(s), per_seed(her)
@@ -308,8 +313,7 @@ def vs_her_paired(s: SettingData, data: Sequence[SettingData]
     setting a paired t-test at 5% needs to detect that difference with 80% power at the spread
     of the differences seen: nan where it cannot be said). None for HER itself or where the
     task has no HER."""
-    her = None if s.name == "her" else next(
-        (r for r in data if r.task == s.task and r.name == "her" and r.runs), None)
+    her = _her_of(s, data)
     if her is None:
         return None
     mine, ref = per_seed(s), per_seed(her)
