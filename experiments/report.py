@@ -397,11 +397,22 @@ def lam(s: SettingData) -> str:
     return "-" if lr is None else f"{lr:g} / {lh:g}"
 
 
+def _budget_epochs(s: SettingData) -> int | None:
+    want = s.meta.get("budget", {}).get("settings", {}).get("epochs")
+    return None if want is None else int(want)
+
+
+def unfinished(s: SettingData) -> int:
+    """How many of the setting's runs have not reached its budget's epochs yet."""
+    want = _budget_epochs(s)
+    return 0 if want is None else sum(len(v) < want for v in s.runs.values())
+
+
 def epochs_cell(s: SettingData) -> str:
     done = sorted(len(v) for v in s.runs.values())
     if not done:
         return "0"
-    want = s.meta.get("budget", {}).get("settings", {}).get("epochs")
+    want = _budget_epochs(s)
     cell = str(done[0]) if done[0] == done[-1] else f"{done[0]}-{done[-1]}"
     if want is not None and done[0] < int(want):
         cell += f" of {want} (unfinished)"
@@ -589,7 +600,11 @@ def summary_markdown(kind: str, profile: str, data: Sequence[SettingData]) -> st
                     st = stats[(task, a)][measure] if a in have else None
                     mine = pct(st.mean) if st is not None and st.n else "-"
                     ref = paper_best(task, a)
-                    cells.append(mine + (f" ({ref})" if ref is not None else ""))
+                    mine += f" ({ref})" if ref is not None else ""
+                    # A mean over runs still under way is not the cell's result: say so.
+                    late = unfinished(have[a]) if a in have and measure != "policy" else 0
+                    cells.append(mine + (f", {late} of {len(have[a].runs)} runs unfinished"
+                                         if late and mine != "-" else ""))
                 rows.append([task, *cells])
             return _md_table(["task", *[data_label(a, data) for a in algos]], rows)
 
@@ -830,8 +845,10 @@ def figure(kind: str, profile: str, data: Sequence[SettingData], x_col: str, pat
                     label="paper, Table 2 (best policy)")
         ax.set_title(task)
         ax.set_xlabel("epoch" if x_col == "epoch" else "env steps per run")
+        late = sum(unfinished(s) for s in data if s.task == task)
         ax.set_ylabel(f"test success (median, IQR; "
-                      f"{n_seeds(min(counts)) if len(counts) == 1 else 'over seeds'})")
+                      f"{n_seeds(min(counts)) if len(counts) == 1 else 'over seeds'}"
+                      f"{f', {late} unfinished' if late else ''})")
         ax.set_ylim(-0.02, 1.02)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, loc="best")  # where it covers the fewest curve and star points

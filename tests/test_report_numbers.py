@@ -240,3 +240,24 @@ def test_solve_profile_times_each_seed_to_the_goal_threshold():
         f"s{k}": {"best_policy": {"success": x}} for k, x in enumerate(f32)}},
         {k: rows([0.9]) for k in range(5)})
     assert report._goal_lines([at])[-2].endswith("| met at 5 of 5 seeds |")
+
+
+def test_table2_layout_marks_means_over_unfinished_runs():
+    """A Table 2 cell whose mean includes runs still short of the budget says how many; the
+    retested table (finished runs only) does not; a finished setting is not marked."""
+    def rows(succ):
+        return [{"epoch": str(i + 1), "env_steps": str(2500 * (i + 1)), "wall_time": "1.0",
+                 "test_success": str(x)} for i, x in enumerate(succ)]
+
+    meta = {"label": "HER", "algo": "her", "budget": {"settings": {"epochs": 3}},
+            "runs": {"s0": {"best_policy": {"success": 0.9, "episodes": 100}}}}
+    late = report.SettingData("FetchPush", "her", meta, {0: rows([0.2, 1.0, 0.8]), 1: rows([0.4])})
+    assert report.unfinished(late) == 1
+    md = report.summary_markdown("benchmark", "solve", [late])
+    cells = section(md, "Best-policy test success (%)")
+    assert cells[0] == "| FetchPush | 70.0 (39), 1 of 2 runs unfinished |"
+    assert cells[1:] == ["| task | HER |", "| FetchPush | 90.0 (39) |"]  # retest: finished runs
+    done = report.SettingData("FetchPush", "her", meta, {0: rows([0.2, 1.0, 0.8])})
+    assert report.unfinished(done) == 0
+    md = report.summary_markdown("benchmark", "solve", [done])
+    assert section(md, "Best-policy test success (%)")[0] == "| FetchPush | 100.0 (39) |"
