@@ -159,21 +159,27 @@ def seeds(ref: str, measure: str) -> dict[int, float]:
     ``combined_run`` the same over every epoch; a bias column (``bias_real``, ...), mean of its
     finite values over the last 3 epochs, as summary.md's diagnostic; ``w1``-``w3`` the mean
     test success over summary.md's env-step windows, in %; ``to<x>`` the env steps to the first
-    test at ``x`` or above, ``to<x>m3`` to the first trailing mean of 3 tests there (a seed that
-    never gets there counts its last env steps, a lower bound), ``to<x>_min`` / ``to<x>m3_min``
-    the same in minutes of the training clock."""
+    test at ``x`` or above, ``to<x>m3`` to the first trailing mean of 3 tests there (a finished
+    seed that never gets there counts its last env steps, a lower bound; one still short of its
+    budget has no figure yet), ``to<x>_min`` / ``to<x>m3_min`` the same in minutes of the
+    training clock."""
     if m := re.fullmatch(r"w(\d)", measure):
         ws = report.window_seeds(setting(ref))
         if not 1 <= int(m[1]) <= len(ws):
             raise KeyError(f"windows are w1-w{len(ws)}")
         return {k: 100 * v for k, v in ws[int(m[1]) - 1][1].items()}
-    if m := HIT.fullmatch(measure):
-        return {k: first_hit(rows, float(m[1]), 3 if m[2] else 1) or float(rows[-1]["env_steps"])
-                for k, rows in setting(ref).runs.items()}
-    if m := HIT_MIN.fullmatch(measure):
-        return {k: (first_hit(rows, float(m[1]), 3 if m[2] else 1, "wall_s")
-                    or float(rows[-1]["wall_time"])) / 60
-                for k, rows in setting(ref).runs.items()}
+    if m := (HIT.fullmatch(measure) or HIT_MIN.fullmatch(measure)):
+        s = setting(ref)
+        want = report._budget_epochs(s)
+        field, col, scale = (("wall_s", "wall_time", 1 / 60) if measure.endswith("_min")
+                             else ("env_steps", "env_steps", 1))
+        out = {}
+        for k, rows in s.runs.items():
+            hit = first_hit(rows, float(m[1]), 3 if m[2] else 1, field)
+            if hit is None and want is not None and len(rows) < want:
+                continue  # not reached yet: the run is still under way
+            out[k] = scale * (hit if hit is not None else float(rows[-1][col]))
+        return out
     if measure in MEASURES:
         return {k: 100 * v for k, v in report.per_seed(setting(ref))[measure].items()}
     if measure not in COLUMN_MEASURES:

@@ -12,6 +12,7 @@ EXP = Path(__file__).resolve().parents[1] / "experiments"
 sys.path.insert(0, str(EXP))
 
 import quoted  # noqa: E402
+import report  # noqa: E402
 
 
 def test_quoted_figures_match_the_committed_data():
@@ -164,3 +165,23 @@ def test_bench_learning_hits_at_any_threshold(tmp_path, monkeypatch):
     assert quoted.learning("h", "to0.8m3_min", ["s0"]) == pytest.approx(5.0)
     assert quoted.learning("h", "to0.9", ["s0"]) == 25000.0  # from the curve, not the stored None
     assert quoted.learning("h", "to0.9m3", ["s0"]) == "not reached"
+
+
+def test_steps_to_a_threshold_leave_out_runs_still_under_way(monkeypatch):
+    """A finished seed that never reaches the threshold counts its last env steps (a lower
+    bound); a seed short of its budget that has not reached it yet has no figure, so a ':min'
+    over seeds cannot pick up how far an unfinished run has got."""
+    def rows(succ):
+        return [{"epoch": str(i + 1), "env_steps": str(2500 * (i + 1)),
+                 "wall_time": str(60.0 * (i + 1)), "test_success": str(x)}
+                for i, x in enumerate(succ)]
+
+    s = report.SettingData("FetchPush", "her", {"budget": {"settings": {"epochs": 4}}},
+                           {0: rows([0.9, 0.9, 0.9, 1.0]),   # reached at epoch 3
+                            1: rows([0.1, 0.2, 0.1, 0.2]),   # finished, never reached
+                            2: rows([0.1]),                  # under way, not reached yet
+                            3: rows([0.9, 0.9, 0.9])})       # under way, reached
+    monkeypatch.setattr(quoted, "setting", lambda ref: s)
+    assert quoted.seeds("x", "to0.9m3") == {0: 7500.0, 1: 10000.0, 3: 7500.0}
+    assert quoted.seeds("x", "to0.9m3_min") == {0: 3.0, 1: 4.0, 3: 3.0}
+    assert quoted.seeds("x", "to0.1") == {0: 2500.0, 1: 2500.0, 2: 2500.0, 3: 2500.0}
