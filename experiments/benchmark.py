@@ -12,6 +12,11 @@ Outputs (small text files; checkpoints stay in the sweep directories):
 paper's Table 2, wall clock beside its Table 3, the hindsight-bias diagnostic), ``summary.csv``
 and the figures under ``<out>/benchmark/<profile>/``.
 
+``--settings dher_f0.8 rdher_f0.8`` adds DHER, and RDHER at the task's paper pair, at the
+authors' share of combined rows (``dher_fraction=0.8``) as rows of the same table, for a profile
+whose budget takes another share (``solve``: ``preset=fast``'s 0.2, so that there the DHER and
+RDHER rows are at 0.2 and these are the paper's).
+
 Resumable: the sweeps live in ``<runs-dir>/benchmark/<profile>/<task>/<algo>``; running the same
 command again continues an unfinished sweep from its last checkpoint and skips a finished one.
 
@@ -23,11 +28,27 @@ command again continues an unfinished sweep from its last checkpoint and skips a
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 
-from profiles import ALGO_LABELS, BENCHMARK_ALGOS, Setting, add_common_args, run_experiment
+from profiles import (
+    ALGO_LABELS,
+    BENCHMARK_ALGOS,
+    NamedSetting,
+    Setting,
+    add_common_args,
+    named_sweeps,
+    run_experiment,
+)
 
 KIND = "benchmark"
+
+# Rows beside the five algorithms (profiles.NamedSetting), tabled after them.
+SETTINGS: dict[str, NamedSetting] = {
+    "dher_f0.8": ("DHER, share 0.8 (the authors')", "dher", None, ("dher_fraction=0.8",), None),
+    "rdher_f0.8": ("RDHER {pair}, share 0.8 (the authors')", "rdher", None,
+                   ("dher_fraction=0.8",), None),
+}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -35,14 +56,28 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python experiments/benchmark.py",
                                  description=__doc__.split("\n\n")[0])
     add_common_args(ap)
-    ap.add_argument("--algos", nargs="+", choices=BENCHMARK_ALGOS, default=list(BENCHMARK_ALGOS),
-                    help="algorithms, run in the order given (default: all five)")
+    ap.add_argument("--algos", nargs="+", choices=BENCHMARK_ALGOS, default=None,
+                    help="algorithms, run in the order given (default: all five, or none "
+                    "with --settings)")
+    ap.add_argument("--settings", nargs="+", choices=tuple(SETTINGS), default=[],
+                    help="rows beside the algorithms, run after them: DHER and RDHER at the "
+                    "authors' share of combined rows (dher_fraction=0.8) where the profile "
+                    "takes another (default: none)")
     args = ap.parse_args(argv)
+    if args.algos is None:  # --settings alone runs those rows only
+        args.algos = [] if args.settings else list(BENCHMARK_ALGOS)
     algos = list(dict.fromkeys(args.algos))
+    named = named_sweeps(SETTINGS, args.settings)
 
-    def sweeps(task: str) -> list[tuple[str, str, object, tuple[Setting, ...]]]:
-        return [(a, a, None, (Setting(a, ALGO_LABELS[a], a, None, BENCHMARK_ALGOS.index(a)),))
-                for a in algos]
+    def sweeps(task: str) -> list[tuple]:
+        out: list[tuple] = [(a, a, None, (Setting(a, ALGO_LABELS[a], a, None,
+                                                  BENCHMARK_ALGOS.index(a)),))
+                            for a in algos]
+        for name, algo, lambdas, (setting,), *more in named(task):
+            order = len(BENCHMARK_ALGOS) + setting.order
+            out.append((name, algo, lambdas, (dataclasses.replace(setting, order=order),),
+                        *more))
+        return out
 
     return run_experiment(KIND, "benchmark.py", args, argv, sweeps)
 

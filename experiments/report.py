@@ -599,7 +599,8 @@ def summary_markdown(kind: str, profile: str, data: Sequence[SettingData]) -> st
                 for a in algos:
                     st = stats[(task, a)][measure] if a in have else None
                     mine = pct(st.mean) if st is not None and st.n else "-"
-                    ref = paper_best(task, a)
+                    # the paper's row of the setting's algorithm (DHER at either share)
+                    ref = paper_best(task, have[a].meta.get("algo", a) if a in have else a)
                     mine += f" ({ref})" if ref is not None else ""
                     # A mean over runs still under way is not the cell's result: say so.
                     late = unfinished(have[a]) if a in have and measure != "policy" else 0

@@ -507,6 +507,31 @@ def test_dry_run_plans_every_algorithm_and_task(tmp_path, capsys):
     assert not (tmp_path / "out").exists() and not (tmp_path / "runs").exists()
 
 
+def test_benchmark_settings_add_the_authors_share_as_rows(tmp_path, capsys):
+    """--settings dher_f0.8 rdher_f0.8: DHER and RDHER at dher_fraction=0.8 on top of the
+    profile's budget (solve: preset=fast's 0.2), each its own sweep in the benchmark's tree;
+    alone they run without the five algorithms, with --algos after them."""
+    args = ["--profile", "solve", "--tasks", "FetchPush", "--out", str(tmp_path / "out"),
+            "--runs-dir", str(tmp_path / "runs"), "--dry-run"]
+    assert benchmark.main([*args, "--settings", "dher_f0.8", "rdher_f0.8"]) == 0
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if "(dry run)" in ln]
+    assert len(lines) == 2
+    for ln, (name, algo) in zip(lines, [("dher_f0.8", "dher"), ("rdher_f0.8", "rdher")],
+                                strict=True):
+        assert f" algo={algo} " in ln and "preset=fast" in ln and "dher_fraction=0.8" in ln
+        assert ln.endswith(f"/benchmark/solve/FetchPush/{name}") and "seeds=5" in ln
+    assert benchmark.main([*args, "--algos", "her", "--settings", "dher_f0.8"]) == 0
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if "(dry run)" in ln]
+    assert [ln.rsplit("/", 1)[1] for ln in lines] == ["her", "dher_f0.8"]
+    assert "dher_fraction" not in lines[0]
+    # Tabled after the five algorithms, beside the paper's row of their algorithm.
+    rows = [{"epoch": "1", "env_steps": "2500", "wall_time": "1.0", "test_success": "0.5"}]
+    data = [report.SettingData("FetchPush", n, {"label": n, "algo": a, "order": o}, {0: rows})
+            for n, a, o in [("her", "her", 1), ("dher_f0.8", "dher", 5)]]
+    md = report.summary_markdown("benchmark", "solve", data)
+    assert "| FetchPush | 50.0 (39) | 50.0 (21) |" in md
+
+
 def test_ablation_split_is_one_sweep_per_setting(tmp_path, capsys, one_line_error):
     """--split: the same seven settings (names, labels, order, pairs), each its own sweep named
     by the setting; --settings picks some, in the order given."""
