@@ -33,8 +33,8 @@ import sys
 
 from profiles import (
     ALGO_LABELS,
+    AUTHORS_SHARE,
     BENCHMARK_ALGOS,
-    NamedSetting,
     Setting,
     add_common_args,
     named_sweeps,
@@ -43,12 +43,8 @@ from profiles import (
 
 KIND = "benchmark"
 
-# Rows beside the five algorithms (profiles.NamedSetting), tabled after them.
-SETTINGS: dict[str, NamedSetting] = {
-    "dher_f0.8": ("DHER, share 0.8 (the authors')", "dher", None, ("dher_fraction=0.8",), None),
-    "rdher_f0.8": ("RDHER {pair}, share 0.8 (the authors')", "rdher", None,
-                   ("dher_fraction=0.8",), None),
-}
+# Rows beside the five algorithms, tabled after them.
+SETTINGS = AUTHORS_SHARE
 
 
 def main(argv: list[str] | None = None) -> int:

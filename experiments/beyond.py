@@ -40,7 +40,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from profiles import NamedSetting, add_common_args, named_sweeps, run_experiment
+from profiles import AUTHORS_SHARE, NamedSetting, add_common_args, named_sweeps, run_experiment
 
 KIND = "beyond"
 
@@ -60,12 +60,7 @@ SETTINGS: dict[str, NamedSetting] = {
     "rdher_f0.2_lr1_lh2": ("RDHER (1, 2), share 0.2", "rdher", ((1.0, 2.0),),
                            ("dher_fraction=0.2",), None),
     "dher_f0.2": ("DHER, share 0.2", "dher", None, ("dher_fraction=0.2",), None),
-    # The authors' share written out, for a profile whose budget takes another (solve:
-    # preset=fast's 0.2): the paper's DHER and RDHER beside the benchmark's.
-    "dher_f0.8": ("DHER, share 0.8 (the authors')", "dher", None, ("dher_fraction=0.8",),
-                  None),
-    "rdher_f0.8": ("RDHER {pair}, share 0.8 (the authors')", "rdher", None,
-                   ("dher_fraction=0.8",), None),
+    **AUTHORS_SHARE,  # dher_f0.8, rdher_f0.8 (profiles.py)
     "dher_plain": ("DHER, share 0.8, plain mix (replay_k=0)", "dher", None, ("replay_k=0",),
                    None),
     "rdher_clip": ("RDHER (the paper's pair), share 0.8, unweighted clip", "rdher", None,

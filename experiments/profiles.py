@@ -309,6 +309,15 @@ def make_jobs(kind: str, profile: str, tasks: Sequence[str], runs_dir: Path,
 NamedSetting = tuple[str, str, tuple[tuple[float, float], ...] | None, tuple[str, ...],
                      str | None]
 
+# DHER, and RDHER at the task's paper pair, at the authors' share of combined rows written out,
+# for a profile whose budget takes another (solve: preset=fast's 0.2): rows of the benchmark's
+# table (benchmark.py --settings) and settings of beyond.py.
+AUTHORS_SHARE: dict[str, NamedSetting] = {
+    "dher_f0.8": ("DHER, share 0.8 (the authors')", "dher", None, ("dher_fraction=0.8",), None),
+    "rdher_f0.8": ("RDHER {pair}, share 0.8 (the authors')", "rdher", None,
+                   ("dher_fraction=0.8",), None),
+}
+
 
 def named_sweeps(table: Mapping[str, NamedSetting],
                  names: Sequence[str]) -> Callable[[str], list[tuple]]:

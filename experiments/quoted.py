@@ -170,7 +170,7 @@ def seeds(ref: str, measure: str) -> dict[int, float]:
         return {k: 100 * v for k, v in ws[int(m[1]) - 1][1].items()}
     if m := (HIT.fullmatch(measure) or HIT_MIN.fullmatch(measure)):
         s = setting(ref)
-        want = report._budget_epochs(s)
+        want = report.budget_epochs(s)
         field, col, scale = (("wall_s", "wall_time", 1 / 60) if measure.endswith("_min")
                              else ("env_steps", "env_steps", 1))
         out = {}

@@ -397,14 +397,15 @@ def lam(s: SettingData) -> str:
     return "-" if lr is None else f"{lr:g} / {lh:g}"
 
 
-def _budget_epochs(s: SettingData) -> int | None:
+def budget_epochs(s: SettingData) -> int | None:
+    """The epochs of the setting's budget (None where its run_info names none)."""
     want = s.meta.get("budget", {}).get("settings", {}).get("epochs")
     return None if want is None else int(want)
 
 
 def unfinished(s: SettingData) -> int:
     """How many of the setting's runs have not reached its budget's epochs yet."""
-    want = _budget_epochs(s)
+    want = budget_epochs(s)
     return 0 if want is None else sum(len(v) < want for v in s.runs.values())
 
 
@@ -412,9 +413,9 @@ def epochs_cell(s: SettingData) -> str:
     done = sorted(len(v) for v in s.runs.values())
     if not done:
         return "0"
-    want = _budget_epochs(s)
+    want = budget_epochs(s)
     cell = str(done[0]) if done[0] == done[-1] else f"{done[0]}-{done[-1]}"
-    if want is not None and done[0] < int(want):
+    if want is not None and done[0] < want:
         cell += f" of {want} (unfinished)"
     return cell
 
