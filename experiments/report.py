@@ -15,7 +15,8 @@ Reads ``<results>/<ablation|benchmark>/<profile>/<task>/<setting>/s<seed>.csv`` 
   over the last 3 epochs and seeds). Benchmark tables carry the paper's Tables 2 and 3 beside.
 - ``summary.csv``: the same numbers, one row per (task, setting).
 - ``success_epochs.png``, ``success_env_steps.png``: test success against epochs and against
-  env steps per run, median over seeds with the interquartile band; one panel per task (the
+  env steps per run, median over seeds with the interquartile band (a long run's curve first a
+  trailing mean over 1/40 of its epochs, :func:`smoothing_window`); one panel per task (the
   ablation's 7 settings or the benchmark's algorithms in each), as the paper's Figs. 5-9.
 
 Deterministic: tasks and settings in a fixed order, fixed number formats, no dates; a second run
@@ -728,7 +729,10 @@ def summary_markdown(kind: str, profile: str, data: Sequence[SettingData]) -> st
                      *[bias_cell(b[c]) for c in BIAS_COLS]])
     out += _md_table(head, rows)
     out += ["", "## Figures", "",
-            "Test success, median over seeds with the interquartile band.", "",
+            "Test success, median over seeds with the interquartile band. Where a task's "
+            f"runs have {2 * SMOOTH_EPOCHS} epochs or more, each seed's curve is first a "
+            f"trailing mean of its last epochs / {SMOOTH_EPOCHS} tests (the panel's title "
+            "says how many).", "",
             "![test success against epochs](success_epochs.png)", "",
             "![test success against env steps](success_env_steps.png)", ""]
     return "\n".join(out)
@@ -790,17 +794,43 @@ def summary_csv(kind: str, data: Sequence[SettingData]) -> str:
 
 # ------------------------------------------------------------------ figures
 
-def _curve(s: SettingData, x_col: str) -> tuple[list[float], list[float], list[float],
-                                                  list[float]]:
-    """x, median, 25th and 75th percentile of test success per epoch over the seeds."""
+SMOOTH_EPOCHS = 40  # a long run's curve: a trailing mean over 1/40 of its epochs
+
+
+def smoothing_window(n_epochs: int) -> int:
+    """The test epochs each seed's curve averages over in a figure: ``n_epochs // 40``, at
+    least 1 (none under 80 epochs: the paper's 50-epoch runs plot every test as it was).
+
+    A test epoch is 10 episodes, so one point's binomial noise is up to 16 points; on a
+    200-epoch run a trailing mean of 5 (50 episodes) shows the learning curve, not the noise.
+    """
+    return max(1, n_epochs // SMOOTH_EPOCHS)
+
+
+def trailing_mean(y: Sequence[float], window: int) -> list[float]:
+    """Mean of each value and the ``window - 1`` before it (fewer at the start)."""
+    out, total = [], 0.0
+    for i, v in enumerate(y):
+        total += v
+        if i >= window:
+            total -= y[i - window]
+        out.append(total / min(i + 1, window))
+    return out
+
+
+def _curve(s: SettingData, x_col: str, window: int = 1
+           ) -> tuple[list[float], list[float], list[float], list[float]]:
+    """x, median, 25th and 75th percentile over the seeds of test success per epoch, each
+    seed's curve first a trailing mean over ``window`` epochs (:func:`trailing_mean`)."""
     import numpy as np
 
-    n = max((len(v) for v in s.runs.values()), default=0)
+    runs = [(v, trailing_mean([_float(r["test_success"]) for r in v], window))
+            for v in s.runs.values()]
+    n = max((len(v) for v, _ in runs), default=0)
     xs, med, q1, q3 = [], [], [], []
     for i in range(n):
-        rows = [v[i] for v in s.runs.values() if len(v) > i]
-        y = np.array([_float(r["test_success"]) for r in rows])
-        x = float(np.median([_float(r[x_col]) for r in rows]))
+        y = np.array([ys[i] for v, ys in runs if len(v) > i])
+        x = float(np.median([_float(v[i][x_col]) for v, _ in runs if len(v) > i]))
         xs.append(x)
         med.append(float(np.median(y)))
         q1.append(float(np.percentile(y, 25)))
@@ -822,8 +852,10 @@ def figure(kind: str, profile: str, data: Sequence[SettingData], x_col: str, pat
     for ax, task in zip(axes.flat, tasks, strict=False):
         marked = False
         counts = {len(s.runs) for s in data if s.task == task and s.runs}
+        window = smoothing_window(max((len(v) for s in data if s.task == task
+                                       for v in s.runs.values()), default=0))
         for s in (s for s in data if s.task == task):
-            x, med, q1, q3 = _curve(s, x_col)
+            x, med, q1, q3 = _curve(s, x_col, window)
             if not x:
                 continue
             order = int(s.meta.get("order", 9))
@@ -833,7 +865,8 @@ def figure(kind: str, profile: str, data: Sequence[SettingData], x_col: str, pat
                 label += f" (λ {lam(s)})"
             if len(counts) > 1:  # settings of one task with unequal seeds: each says its own
                 label += f", {n_seeds(len(s.runs))}"
-            ax.plot(x, med, color=color, lw=1.6, marker="o", ms=2.5, label=label,
+            ax.plot(x, med, color=color, lw=1.6, marker="o" if len(x) <= 60 else None, ms=2.5,
+                    label=label,
                     ls="--" if s.name == "her" and kind == "ablation" else "-")
             ax.fill_between(x, q1, q3, color=color, alpha=0.15, lw=0)
             paper = paper_best(task, s.meta.get("algo")) if kind == "benchmark" else None
@@ -845,7 +878,7 @@ def figure(kind: str, profile: str, data: Sequence[SettingData], x_col: str, pat
         if kind == "benchmark" and marked:
             ax.plot([], [], color="grey", marker="*", ms=10, ls="none", mec="black", mew=0.5,
                     label="paper, Table 2 (best policy)")
-        ax.set_title(task)
+        ax.set_title(task if window == 1 else f"{task} (trailing mean of {window} tests)")
         ax.set_xlabel("epoch" if x_col == "epoch" else "env steps per run")
         late = sum(unfinished(s) for s in data if s.task == task)
         ax.set_ylabel(f"test success (median, IQR; "

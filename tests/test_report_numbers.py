@@ -261,3 +261,29 @@ def test_table2_layout_marks_means_over_unfinished_runs():
     assert report.unfinished(done) == 0
     md = report.summary_markdown("benchmark", "solve", [done])
     assert section(md, "Best-policy test success (%)")[0] == "| FetchPush | 100.0 (39) |"
+
+
+def test_figure_curves_smooth_long_runs_per_seed_before_the_median():
+    """A long run's figure curve: each seed's trailing mean over epochs / 40 tests (a plain loop
+    here), then the median and quartiles over seeds; short runs (the paper's 50 epochs) are
+    plotted as tested."""
+    assert [report.smoothing_window(n) for n in (4, 50, 79, 80, 200, 240, 400)] == \
+        [1, 1, 1, 2, 5, 6, 10]
+    y = [0.0, 1.0, 0.5, 0.2, 0.9, 0.4, 0.3]
+    for w in (1, 2, 3, 7, 9):
+        want = [sum(y[max(0, i - w + 1):i + 1]) / len(y[max(0, i - w + 1):i + 1])
+                for i in range(len(y))]
+        assert report.trailing_mean(y, w) == pytest.approx(want)
+
+    def rows(succ):
+        return [{"epoch": str(i + 1), "env_steps": str(100 * (i + 1)), "test_success": str(x)}
+                for i, x in enumerate(succ)]
+
+    s = report.SettingData(TASK, "her", {}, {0: rows([0.0, 0.4, 0.8]), 1: rows([0.2, 0.2, 0.2]),
+                                             2: rows([1.0, 0.0])})  # seed 2: unfinished
+    x, med, q1, q3 = report._curve(s, "env_steps", 2)
+    assert x == [100.0, 200.0, 300.0]
+    # seed means: epoch 1 (0, 0.2, 1), epoch 2 (0.2, 0.2, 0.5), epoch 3 (0.6, 0.2): the median
+    assert med == pytest.approx([0.2, 0.2, 0.4])
+    assert q1 == pytest.approx([0.1, 0.2, 0.3]) and q3 == pytest.approx([0.6, 0.35, 0.5])
+    assert report._curve(s, "epoch")[1] == pytest.approx([0.2, 0.2, 0.5])  # unsmoothed
