@@ -979,6 +979,9 @@ def test_bench_scripts_import_without_side_effects(script, monkeypatch):
     import importlib  # noqa: PLC0415
     import os  # noqa: PLC0415
 
+    import jax  # noqa: F401, PLC0415  (its own import sets TF_CPP_MIN_LOG_LEVEL and, with no TPU,
+    # TPU_SKIP_MDS_QUERY: not the script's doing; without this the test depends on the order)
+
     before = dict(os.environ)
     importlib.import_module(script)
     assert dict(os.environ) == before
