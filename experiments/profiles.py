@@ -44,9 +44,11 @@ from __future__ import annotations
 
 import csv
 import io
+import itertools
 import json
 import os
 import re
+import statistics
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -751,7 +753,7 @@ def add_common_args(ap: Any) -> None:
     ap.add_argument("--status", action="store_true",
                     help="train and write nothing: print, per setting, each seed's epochs so "
                     "far and the sweep directory (whole sweep or piece) that holds them, or "
-                    "that it is missing")
+                    "that it is missing; an unfinished run's time left at its recent pace")
     ap.add_argument("--collect-only", action="store_true",
                     help="train nothing: copy what the sweep directories hold now (e.g. while "
                     "the sweeps run in another process) and write the report")
@@ -787,10 +789,33 @@ def _ago(seconds: float) -> str:
     return f"{seconds / 60:.0f} min ago" if seconds < 7200 else f"{seconds / 3600:.1f} h ago"
 
 
+def seconds_per_epoch(rows: Sequence[Mapping[str, str]], last: int = 10) -> float | None:
+    """The median wall-clock seconds of the run's last ``last`` epochs, from the ``wall_time``
+    column of its metrics rows (cumulative over resumes; a step back or a gap of several
+    epochs is skipped); the first epoch alone (compile included) when it is all there is."""
+    pts = [(int(r["epoch"]), float(r["wall_time"])) for r in rows
+           if r.get("epoch") and r.get("wall_time")]
+    steps = [(t1 - t0) / (e1 - e0) for (e0, t0), (e1, t1) in itertools.pairwise(pts)
+             if e1 == e0 + 1 and t1 > t0][-last:]
+    if steps:
+        return float(statistics.median(steps))
+    return pts[0][1] / pts[0][0] if len(pts) == 1 and pts[0][0] > 0 else None
+
+
+def _left(epochs_left: int, per_epoch: float | None) -> str:
+    if per_epoch is None:
+        return ""
+    m = epochs_left * per_epoch / 60
+    left = f"{m:.0f} min" if m < 120 else f"{m / 60:.1f} h"
+    return f"; about {left} left at {per_epoch:.1f} s/epoch"
+
+
 def status_lines(job: Job, now: float | None = None) -> list[str]:
     """Where each seed of ``job``'s setting stands: its epochs so far (the last row of its
     metrics.csv) and the sweep directory holding it, over the whole sweep and every piece;
-    a seed held by several directories is listed with each, the one collecting reads first."""
+    a seed held by several directories is listed with each, the one collecting reads first.
+    An unfinished run also says how long its remaining epochs take at the pace of its last
+    ones (:func:`seconds_per_epoch`)."""
     import time
 
     now = time.time() if now is None else now
@@ -801,10 +826,10 @@ def status_lines(job: Job, now: float | None = None) -> list[str]:
             f = run / "metrics.csv"
             if m is None or not f.is_file():
                 continue
-            last = _last_row(f.read_text(encoding="utf-8"))
-            epochs = int(last["epoch"]) if last else 0
+            rows = list(csv.DictReader(io.StringIO(f.read_text(encoding="utf-8"))))
+            epochs = int(rows[-1]["epoch"]) if rows else 0
             found.setdefault((m["lr"], m["lh"]), {}).setdefault(int(m["seed"]), []).append(
-                (epochs, d, f.stat().st_mtime))
+                (epochs, d, f.stat().st_mtime, seconds_per_epoch(rows)))
     head = (f"[{job.task} {job.name}] {job.seeds} seeds x {job.epochs} epochs"
             + (f", read from the {job.sweep_kind} experiment's sweep" if job.borrowed else ""))
     if not found:
@@ -820,11 +845,13 @@ def status_lines(job: Job, now: float | None = None) -> list[str]:
             if not held:
                 out.append(f"  {'s' + str(seed) + ':':<5} missing")
                 continue
-            for i, (epochs, d, mtime) in enumerate(held):
-                state = "done" if epochs >= job.epochs else f"{epochs}/{job.epochs} epochs"
+            for i, (epochs, d, mtime, per_epoch) in enumerate(held):
+                done = epochs >= job.epochs
+                state = "done" if done else f"{epochs}/{job.epochs} epochs"
                 label = f"s{seed}:" if i == 0 else ""
+                eta = "" if done else _left(job.epochs - epochs, per_epoch)
                 out.append(f"  {label:<5} {state:<15} {_rel(d)} "
-                           f"(updated {_ago(max(now - mtime, 0.0))})")
+                           f"(updated {_ago(max(now - mtime, 0.0))}{eta})")
     return out
 
 

@@ -351,7 +351,25 @@ def test_a_seed_rerun_as_a_piece_is_read_from_the_piece_and_status_shows_both(re
     assert body[2][:3] == ["1/2", "epochs", body[2][2]] and body[2][2].endswith("FetchReach/her")
     assert body[3][:2] == ["s2:", "done"] and body[3][2].endswith("her.s1-2")
     assert body[4] == ["s3:", "missing"] and len(body) == 5
+    # Only the unfinished run says how long it has left (its one epoch's pace).
+    assert [("left at" in ln) for ln in lines[1:5]] == [False, False, True, False]
     assert {p.name: p.read_bytes() for p in d.iterdir()} == before  # --status writes nothing
+
+
+def test_seconds_per_epoch_is_the_median_of_the_last_epochs_across_a_resume():
+    from profiles import seconds_per_epoch
+
+    def rows(pairs):
+        return [{"epoch": str(e), "wall_time": str(t)} for e, t in pairs]
+
+    # Epoch 1 holds the compile; a resume after epoch 3 continues the cumulative clock.
+    assert seconds_per_epoch(rows([(1, 60.0), (2, 70.0), (3, 81.0), (4, 93.0), (5, 103.0)])) \
+        == pytest.approx(10.5)
+    assert seconds_per_epoch(rows([(1, 60.0), (2, 70.0), (3, 82.0)]), last=1) == 12.0
+    # A gap of several epochs or a clock that steps back is no epoch's pace.
+    assert seconds_per_epoch(rows([(1, 60.0), (4, 70.0), (5, 65.0), (6, 73.0)])) == 8.0
+    assert seconds_per_epoch(rows([(2, 50.0)])) == 25.0
+    assert seconds_per_epoch([]) is None
 
 
 def test_rerun_skips_finished_sweeps(results, capsys):
