@@ -398,6 +398,23 @@ def lam(s: SettingData) -> str:
     return "-" if lr is None else f"{lr:g} / {lh:g}"
 
 
+def pair_text(s: SettingData) -> str:
+    """The (λ_r, λ_h) pair as a setting's label writes it, e.g. "(4, 0.5)"."""
+    lr, lh = s.meta.get("lambda_r"), s.meta.get("lambda_h")
+    return "" if lr is None else f"({lr:g}, {lh:g})"
+
+
+def legend_label(kind: str, s: SettingData, with_seeds: bool) -> str:
+    """A curve's legend entry: the setting's label, its λ pair on a benchmark's weighted
+    algorithm unless the label names it already, and its seeds where ``with_seeds`` (the
+    task's settings have unequal seeds)."""
+    label = s.meta.get("label", s.name)
+    if kind == "benchmark" and s.meta.get("algo") in ("rdher", "archer") and \
+            pair_text(s) not in label:
+        label += f" (λ {lam(s)})"
+    return label + (f", {n_seeds(len(s.runs))}" if with_seeds else "")
+
+
 def budget_epochs(s: SettingData) -> int | None:
     """The epochs of the setting's budget (None where its run_info names none)."""
     want = s.meta.get("budget", {}).get("settings", {}).get("epochs")
@@ -860,11 +877,7 @@ def figure(kind: str, profile: str, data: Sequence[SettingData], x_col: str, pat
                 continue
             order = int(s.meta.get("order", 9))
             color = "black" if kind == "ablation" and s.name == "her" else cmap(order % 10)
-            label = s.meta.get("label", s.name)
-            if kind == "benchmark" and s.meta.get("algo") in ("rdher", "archer"):
-                label += f" (λ {lam(s)})"
-            if len(counts) > 1:  # settings of one task with unequal seeds: each says its own
-                label += f", {n_seeds(len(s.runs))}"
+            label = legend_label(kind, s, len(counts) > 1)
             ax.plot(x, med, color=color, lw=1.6, marker="o" if len(x) <= 60 else None, ms=2.5,
                     label=label,
                     ls="--" if s.name == "her" and kind == "ablation" else "-")

@@ -287,3 +287,15 @@ def test_figure_curves_smooth_long_runs_per_seed_before_the_median():
     assert med == pytest.approx([0.2, 0.2, 0.4])
     assert q1 == pytest.approx([0.1, 0.2, 0.3]) and q3 == pytest.approx([0.6, 0.35, 0.5])
     assert report._curve(s, "epoch")[1] == pytest.approx([0.2, 0.2, 0.5])  # unsmoothed
+
+
+def test_legend_names_a_weighted_settings_pair_once():
+    named = report.SettingData("FetchPush", "rdher_f0.8", {
+        "label": "RDHER (4, 0.5), share 0.8", "algo": "rdher", "lambda_r": 4.0,
+        "lambda_h": 0.5}, {0: [], 1: []})
+    plain = report.SettingData("FetchPush", "rdher", {
+        "label": "RDHER", "algo": "rdher", "lambda_r": 4.0, "lambda_h": 0.5}, {0: []})
+    assert report.legend_label("benchmark", named, False) == "RDHER (4, 0.5), share 0.8"
+    assert report.legend_label("benchmark", plain, False) == "RDHER (λ 4 / 0.5)"
+    assert report.legend_label("benchmark", named, True) == "RDHER (4, 0.5), share 0.8, 2 seeds"
+    assert report.legend_label("ablation", plain, False) == "RDHER"
