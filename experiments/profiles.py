@@ -57,7 +57,7 @@ from typing import Any
 from rdher_jax.config import Config, ConfigError
 from rdher_jax.runlog import write_text_atomic
 from rdher_jax.startup import Startup, setup
-from rdher_jax.summary import grid_keys, settings_markdown
+from rdher_jax.summary import grid_keys, num, settings_markdown
 from rdher_jax.tasks import MOVING_TASKS, PAPER_TASKS, TASK_NAMES
 from rdher_jax.tasks import TASKS as TASK_TABLE
 
@@ -182,11 +182,6 @@ PROFILES: dict[str, Profile] = {
                      "task's own values and budget (Push 500,000 env steps, PickAndPlace "
                      "600,000, Slide 2,000,000), 5 seeds", SOLVE, SOLVE_TASKS),
 }
-
-
-def num(x: float) -> str:
-    """1.0 -> '1', 0.5 -> '0.5' (as rdher_jax.sweep names its runs)."""
-    return str(int(x)) if float(x).is_integer() else repr(float(x))
 
 
 def budget_for(profile: str, task: str) -> Budget:
@@ -783,10 +778,10 @@ def add_common_args(ap: Any) -> None:
 _RUN_NAME = re.compile(r"lr(?P<lr>[^_]+)_lh(?P<lh>[^_]+)_s(?P<seed>\d+)")
 
 
-def _ago(seconds: float) -> str:
+def _duration(seconds: float) -> str:
     if seconds < 120:
-        return f"{seconds:.0f} s ago"
-    return f"{seconds / 60:.0f} min ago" if seconds < 7200 else f"{seconds / 3600:.1f} h ago"
+        return f"{seconds:.0f} s"
+    return f"{seconds / 60:.0f} min" if seconds < 7200 else f"{seconds / 3600:.1f} h"
 
 
 def seconds_per_epoch(rows: Sequence[Mapping[str, str]], last: int = 10) -> float | None:
@@ -805,9 +800,7 @@ def seconds_per_epoch(rows: Sequence[Mapping[str, str]], last: int = 10) -> floa
 def _left(epochs_left: int, per_epoch: float | None) -> str:
     if per_epoch is None:
         return ""
-    m = epochs_left * per_epoch / 60
-    left = f"{m:.0f} min" if m < 120 else f"{m / 60:.1f} h"
-    return f"; about {left} left at {per_epoch:.1f} s/epoch"
+    return f"; about {_duration(epochs_left * per_epoch)} left at {per_epoch:.1f} s/epoch"
 
 
 def status_lines(job: Job, now: float | None = None) -> list[str]:
@@ -851,7 +844,7 @@ def status_lines(job: Job, now: float | None = None) -> list[str]:
                 label = f"s{seed}:" if i == 0 else ""
                 eta = "" if done else _left(job.epochs - epochs, per_epoch)
                 out.append(f"  {label:<5} {state:<15} {_rel(d)} "
-                           f"(updated {_ago(max(now - mtime, 0.0))}{eta})")
+                           f"(updated {_duration(max(now - mtime, 0.0))} ago{eta})")
     return out
 
 
