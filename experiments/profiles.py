@@ -425,8 +425,8 @@ def adopt_job(job: Job, source: Path, dry_run: bool = False, log=print) -> Path:
 
 # ------------------------------------------------------------------ results
 
-HARDWARE_KEYS = ("backend", "scene", "jax_backend", "devices", "cpu_count", "machine",
-                 "processor", "python")
+HARDWARE_KEYS = ("backend", "scene", "jax_backend", "devices", "cpu_count", "cpu_affinity",
+                 "machine", "processor", "python")
 
 
 def _last_row(text: str) -> dict[str, str] | None:

@@ -449,14 +449,41 @@ def status(s: SettingData) -> str:
     return "ok" if not bad else "diverged: " + ", ".join(bad)
 
 
-def hardware(meta: dict[str, Any]) -> str:
-    h = meta.get("hardware", {})
+def sweep_parts(meta: Mapping[str, Any]) -> list[tuple[float, dict[str, Any], list[int]]]:
+    """(wall clock in s, hardware, seeds) of each piece a setting ran in (``pieces``: its seeds
+    run apart, perhaps on other machines), or of its one sweep."""
+    pieces = meta.get("pieces") or [meta]
+    return [(float(p.get("wall_clock_s") or 0.0), p.get("hardware") or meta.get("hardware") or {},
+             [int(k) for k in p.get("seeds") or []]) for p in pieces]
+
+
+def cores_used(h: Mapping[str, Any]) -> int:
+    """The CPU cores a sweep could run on (``cpu_affinity``); one where its record predates
+    that field: those sweeps ran pinned to one core (``taskset -c N``)."""
+    return int(h.get("cpu_affinity") or 1)
+
+
+def _hardware_one(h: Mapping[str, Any]) -> str:
     devices = h.get("devices") or []
     dev = f"{len(devices)} device{'s' if len(devices) != 1 else ''}"
     if devices and h.get("jax_backend") != "cpu":
         dev += f" ({devices[0]})"
-    return (f"{h.get('processor') or '?'} ({h.get('machine') or '?'}), {h.get('cpu_count')} "
-            f"CPU cores; JAX {h.get('jax_backend')}, {dev}; physics {h.get('backend')}")
+    cores = (f"{h['cpu_affinity']} of {h.get('cpu_count')} CPU cores"
+             if h.get("cpu_affinity") else f"{h.get('cpu_count')} CPU cores")
+    return (f"{h.get('processor') or '?'} ({h.get('machine') or '?'}), {cores}; "
+            f"JAX {h.get('jax_backend')}, {dev}; physics {h.get('backend')}")
+
+
+def hardware(meta: dict[str, Any]) -> str:
+    """Where a setting ran; a setting whose pieces ran on different machines (or on different
+    numbers of cores) names each with its seeds."""
+    seeds: dict[str, list[int]] = {}
+    for _, h, ks in sweep_parts(meta):
+        seeds.setdefault(_hardware_one(h), []).extend(ks)
+    if len(seeds) == 1:
+        return next(iter(seeds))
+    return "; ".join(f"{d} (seed{'s' if len(ks) != 1 else ''} {', '.join(map(str, sorted(ks)))})"
+                     for d, ks in seeds.items())
 
 
 def _md_table(head: Sequence[str], rows: Iterable[Sequence[str]]) -> list[str]:
@@ -992,11 +1019,11 @@ def cost_rows(profiles: Sequence[tuple[str, Path, list[SettingData]]]
                     sweeps.setdefault(str(s.meta.get("sweep", {}).get("name", s.name)), s)
             if not sweeps:
                 continue
-            hours = sum(float(s.meta.get("wall_clock_s") or 0.0) for s in sweeps.values())
+            parts = [p for s in sweeps.values() for p in sweep_parts(s.meta)]
+            hours = sum(wall * cores_used(h) for wall, h, _ in parts)
             runs = sum(int(s.meta.get("sweep", {}).get("runs") or len(s.runs))
                        for s in sweeps.values())
-            cpus = sorted({s.meta.get("hardware", {}).get("processor") or "?"
-                           for s in sweeps.values()})
+            cpus = sorted({h.get("processor") or "?" for _, h, _ in parts})
             rows.append((f"{kind}/{pdir.name}", task, len(sweeps), runs, hours / 3600,
                          ", ".join(cpus)))
     return rows
@@ -1038,11 +1065,13 @@ def cost_markdown(profiles: Sequence[tuple[str, Path, list[SettingData]]],
         return None
     out = ["# Compute spent on the committed results", "",
            "Hours of one CPU core per experiment and task: the sum of the wall clocks of the "
-           "sweeps (and one-seed pieces) that made the committed CSVs, each of which ran pinned "
-           "to one core (`run_info.json`, `wall_clock_s`: from the sweep's start, compilation "
-           "included, summed over resumes; process start, env build and the best-policy retest "
-           "not). A setting read from another experiment (`borrowed_from`) is counted once, "
-           "where it ran. Written by `python experiments/report.py`.", ""]
+           "sweeps (and one-seed pieces) that made the committed CSVs (`run_info.json`, "
+           "`wall_clock_s`: from the sweep's start, compilation included, summed over resumes; "
+           "process start, env build and the best-policy retest not), each times the cores it "
+           "could run on (`cpu_affinity` in its hardware record; one where the record predates "
+           "that field, as those sweeps ran pinned to one core). A setting read from another "
+           "experiment (`borrowed_from`) is counted once, where it ran. Written by "
+           "`python experiments/report.py`.", ""]
     body = [[e, t, str(n), str(r), f"{h:.2f}", c] for e, t, n, r, h, c in rows]
     for e, grouped in itertools.groupby(rows, key=lambda row: row[0]):  # rows come by experiment
         part = list(grouped)

@@ -337,11 +337,20 @@ def _cpu_model() -> str:
     return ""
 
 
+def usable_cpus() -> int | None:
+    """The CPU cores this process may run on (its affinity: 1 under ``taskset -c N``)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # no affinity on this platform
+        return os.cpu_count()
+
+
 def host_info() -> dict[str, Any]:
     """This machine and the package versions (also what the benchmarks record)."""
     versions = package_versions(VERSIONED)
     return {"jax_backend": jax.default_backend(), "devices": [str(d) for d in jax.devices()],
-            "cpu_count": os.cpu_count(), "machine": platform.machine(),
+            "cpu_count": os.cpu_count(), "cpu_affinity": usable_cpus(),
+            "machine": platform.machine(),
             "processor": platform.processor() or _cpu_model(),
             "python": platform.python_version(), "versions": versions}
 
@@ -351,8 +360,8 @@ def run_info(cfg: Config, argv: Sequence[str], prog: str) -> dict:
     backend, scene = resolve_backend(cfg)
     info = host_info()
     return {"command": " ".join([prog, *argv]), "backend": backend, "scene": scene,
-            **{k: info[k] for k in ("jax_backend", "devices", "cpu_count", "machine",
-                                    "processor", "python", "versions")}}
+            **{k: info[k] for k in ("jax_backend", "devices", "cpu_count", "cpu_affinity",
+                                    "machine", "processor", "python", "versions")}}
 
 
 class Outputs:

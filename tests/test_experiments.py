@@ -9,6 +9,7 @@ import csv
 import dataclasses
 import json
 import math
+import os
 import re
 import shutil
 import subprocess
@@ -431,17 +432,59 @@ def test_cost_counts_each_sweep_once_and_borrowed_settings_not_at_all(results, t
     assert info["rdher_lr1_lh2"]["sweep"]["name"] == info["rdher_lr2_lh1"]["sweep"]["name"]
     pairs = info["rdher_lr1_lh2"]
     row = {(e, t): (n, r, h) for e, t, n, r, h, _ in report.cost_rows(report.profiles_data(copy))}
-    want = (info["her"]["wall_clock_s"] + pairs["wall_clock_s"]) / 3600
+    cores = {s: report.cores_used(m["hardware"]) for s, m in info.items()}  # as the run saw
+    assert cores["her"] == len(os.sched_getaffinity(0))
+    want = (info["her"]["wall_clock_s"] * cores["her"]
+            + pairs["wall_clock_s"] * cores["rdher_lr1_lh2"]) / 3600
     assert row[("ablation/tiny", "FetchReach")][:2] == (2, 2 + pairs["sweep"]["runs"])
     assert row[("ablation/tiny", "FetchReach")][2] == pytest.approx(want)
     # HER read from the benchmark: counted there, not here.
     her = copy / "ablation/tiny/FetchReach/her/run_info.json"
     her.write_text(json.dumps({**info["her"], "borrowed_from": {"kind": "benchmark"}}))
     row = {(e, t): (n, r, h) for e, t, n, r, h, _ in report.cost_rows(report.profiles_data(copy))}
-    assert row[("ablation/tiny", "FetchReach")][2] == pytest.approx(pairs["wall_clock_s"] / 3600)
+    assert row[("ablation/tiny", "FetchReach")][2] == pytest.approx(
+        pairs["wall_clock_s"] * cores["rdher_lr1_lh2"] / 3600)
     md = report.cost_markdown(report.profiles_data(copy))
     total = sum(h for *_, h, _ in report.cost_rows(report.profiles_data(copy)))
     assert "| **total** |  |  | " in md and f"**{total:.2f}**" in md
+
+
+def test_cost_and_hardware_read_each_piece_with_its_cores(results, tmp_path):
+    """A setting run in pieces on two machines: cost.md counts each piece's wall clock times the
+    cores it could use (one where the record predates ``cpu_affinity``: pinned runs), and the
+    hardware column names each machine with its seeds."""
+    copy = tmp_path / "results"
+    shutil.copytree(results["out"], copy)
+    path = copy / "ablation/tiny/FetchReach/her/run_info.json"
+    meta = json.loads(path.read_text())
+    old = {k: v for k, v in meta["hardware"].items() if k != "cpu_affinity"}
+    new = {**old, "processor": "Other CPU", "cpu_affinity": 2}
+    before = {(e, t): h for e, t, _, _, h, _ in report.cost_rows(report.profiles_data(copy))}
+    meta["pieces"] = [{"wall_clock_s": 3600.0, "hardware": old, "seeds": [0]},
+                      {"wall_clock_s": 1800.0, "hardware": new, "seeds": [1, 2]}]
+    path.write_text(json.dumps({**meta, "wall_clock_s": 5400.0}))
+    rows = {(e, t): (h, cpu) for e, t, _, _, h, cpu in report.cost_rows(report.profiles_data(copy))}
+    hours, cpus = rows[("ablation/tiny", "FetchReach")]
+    assert hours == pytest.approx(before[("ablation/tiny", "FetchReach")]
+                                  - meta["wall_clock_s"] * report.cores_used(meta["hardware"])
+                                  / 3600 + 1.0 + 2 * 0.5)
+    assert "Other CPU" in cpus and (old.get("processor") or "?") in cpus
+    text = report.hardware({**meta, "wall_clock_s": 5400.0})
+    assert "(seed 0)" in text and "Other CPU" in text and "2 of " in text and "(seeds 1, 2)" in text
+    # One machine: one description, the cores it could use where they are recorded.
+    one = report.hardware({"hardware": {**new, "cpu_count": 2}})
+    assert one.startswith("Other CPU") and "2 of 2 CPU cores" in one and "seed" not in one
+    assert "2 CPU cores" in report.hardware({"hardware": {**old, "cpu_count": 2}})
+
+
+def test_host_info_records_the_usable_cores():
+    import os
+
+    from rdher_jax.outputs import host_info
+
+    info = host_info()
+    assert info["cpu_affinity"] == len(os.sched_getaffinity(0))
+    assert 1 <= info["cpu_affinity"] <= info["cpu_count"]
 
 
 def test_lever_cost_counts_a_continued_run_once(tmp_path):
