@@ -478,8 +478,6 @@ def test_cost_and_hardware_read_each_piece_with_its_cores(results, tmp_path):
 
 
 def test_host_info_records_the_usable_cores():
-    import os
-
     from rdher_jax.outputs import host_info
 
     info = host_info()
