@@ -35,16 +35,36 @@ from profiles import (
     ALGO_LABELS,
     AUTHORS_SHARE,
     BENCHMARK_ALGOS,
+    TASK_TABLE,
     Setting,
     add_common_args,
+    budget_for,
     named_sweeps,
+    num,
     run_experiment,
 )
+
+from rdher_jax.config import Config, config_from_fields
 
 KIND = "benchmark"
 
 # Rows beside the five algorithms, tabled after them.
 SETTINGS = AUTHORS_SHARE
+
+
+def algo_label(algo: str, profile: str, task: str) -> str:
+    """The algorithm's name in tables; DHER and RDHER name their share of combined rows where
+    the profile's budget takes another than the authors' (solve: preset=fast's 0.2), so that a
+    table beside the authors'-share rows (``--settings``) tells the two apart."""
+    label = ALGO_LABELS[algo]
+    if algo in ("dher", "rdher"):
+        settings = budget_for(profile, task).resolved(None)
+        share = config_from_fields({"env": task, **{k: str(v) for k, v in settings.items()}})
+        if share.dher_fraction != Config().dher_fraction:
+            if algo == "rdher":  # as the authors'-share row names it: the task's paper pair
+                label += " ({}, {})".format(*map(num, TASK_TABLE[task].paper_lambdas))
+            label += f", share {num(share.dher_fraction)}"
+    return label
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -66,8 +86,8 @@ def main(argv: list[str] | None = None) -> int:
     named = named_sweeps(SETTINGS, args.settings)
 
     def sweeps(task: str) -> list[tuple]:
-        out: list[tuple] = [(a, a, None, (Setting(a, ALGO_LABELS[a], a, None,
-                                                  BENCHMARK_ALGOS.index(a)),))
+        out: list[tuple] = [(a, a, None, (Setting(a, algo_label(a, args.profile, task), a,
+                                                  None, BENCHMARK_ALGOS.index(a)),))
                             for a in algos]
         for name, algo, lambdas, (setting,), *more in named(task):
             order = len(BENCHMARK_ALGOS) + setting.order

@@ -503,19 +503,30 @@ WINDOWS = (0.4, 0.8, 1.0)  # moving: mean test success over these fractions of t
 
 def _budget_lines(data: Sequence[SettingData]) -> list[str]:
     lines = []
-    seen = {}
+    seen: dict[str, dict[str, tuple[dict[str, Any], dict[str, int]]]] = {}
     for s in data:
         b = s.meta.get("budget", {})
-        # The profile's description is said once, in the intro; a reworded one is no new budget.
-        key = json.dumps({k: v for k, v in b.items() if k != "profile_doc"}, sort_keys=True)
-        seen.setdefault(s.task, {})[key] = b
+        # The profile's description is said once, in the intro, and the seeds are counted from
+        # the runs collected (a setting run in pieces is collected with its seeds so far): a
+        # reworded description or another seed count is no new budget.
+        key = json.dumps({k: v for k, v in b.items() if k not in ("profile_doc", "seeds")},
+                         sort_keys=True)
+        seen.setdefault(s.task, {}).setdefault(key, (b, {}))[1][s.name] = len(s.runs)
     for task, budgets in sorted(seen.items(), key=lambda kv: _task_key(kv[0])):
-        for b in budgets.values():
+        for b, counts in budgets.values():
             settings = " ".join(f"{k}={v}" for k, v in b.get("settings", {}).items())
             mark = " **(placeholder budget)**" if b.get("placeholder") else ""
-            lines.append(f"- {task}: {b.get('seeds')} seeds, `{settings}`{mark} "
+            lines.append(f"- {task}: {_seed_counts(counts)}, `{settings}`{mark} "
                          f"({b.get('note', '')})")
     return lines
+
+
+def _seed_counts(counts: Mapping[str, int]) -> str:
+    """'5 seeds' where every setting has 5; else the usual count and the settings that differ."""
+    usual = max(sorted(set(counts.values())), key=list(counts.values()).count)
+    text = f"{usual} seed{'s' if usual != 1 else ''}"
+    odd = [f"{name} {n}" for name, n in counts.items() if n != usual]
+    return text + (f" ({', '.join(odd)})" if odd else "")
 
 
 def _intro(kind: str, profile: str, data: Sequence[SettingData]) -> list[str]:

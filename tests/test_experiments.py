@@ -591,6 +591,36 @@ def test_benchmark_settings_add_the_authors_share_as_rows(tmp_path, capsys):
     assert "| FetchPush | 50.0 (39) | 50.0 (21) |" in md
 
 
+def test_benchmark_names_the_share_where_the_profile_takes_another():
+    """DHER and RDHER name their share of combined rows where the profile's budget differs
+    from the authors' 0.8 (solve: preset=fast's 0.2), with RDHER's pair as its authors'-share
+    row has it; where the budget keeps 0.8 they stay 'DHER' / 'RDHER'."""
+    assert benchmark.algo_label("dher", "solve", "FetchPush") == "DHER, share 0.2"
+    assert benchmark.algo_label("rdher", "solve", "FetchPush") == "RDHER (4, 0.5), share 0.2"
+    assert benchmark.algo_label("rdher", "solve", "FetchPickAndPlace") == \
+        "RDHER (2, 1), share 0.2"
+    assert benchmark.algo_label("her", "solve", "FetchPush") == "HER"
+    for profile, task in [("paper", "FetchSlide"), ("cpu", "FetchPush")]:
+        assert [benchmark.algo_label(a, profile, task) for a in ("dher", "rdher")] == \
+            ["DHER", "RDHER"]
+
+
+def test_budget_lines_count_the_seeds_each_setting_has():
+    """One budget line per task and budget, whatever seeds each setting was collected with;
+    its count is the usual number of seeds collected, naming the settings that have another."""
+    rows = [{"epoch": "1", "env_steps": "2500", "wall_time": "1.0", "test_success": "0.5"}]
+    budget = {"settings": {"epochs": 200}, "note": "n"}
+
+    def setting(name, seeds, n_budget):
+        meta = {"label": name, "algo": name, "budget": {**budget, "seeds": n_budget}}
+        return report.SettingData("FetchPush", name, meta, {k: rows for k in range(seeds)})
+
+    lines = report._budget_lines([setting("her", 5, 5), setting("dher", 1, 1),
+                                  setting("cher", 5, 5)])
+    assert lines == ["- FetchPush: 5 seeds (dher 1), `epochs=200` (n)"]
+    assert report._budget_lines([setting("her", 1, 5)]) == ["- FetchPush: 1 seed, `epochs=200` (n)"]
+
+
 def test_ablation_split_is_one_sweep_per_setting(tmp_path, capsys, one_line_error):
     """--split: the same seven settings (names, labels, order, pairs), each its own sweep named
     by the setting; --settings picks some, in the order given."""
