@@ -59,11 +59,11 @@ def algo_label(algo: str, profile: str, task: str) -> str:
     label = ALGO_LABELS[algo]
     if algo in ("dher", "rdher"):
         settings = budget_for(profile, task).resolved(None)
-        share = config_from_fields({"env": task, **{k: str(v) for k, v in settings.items()}})
-        if share.dher_fraction != Config().dher_fraction:
+        cfg = config_from_fields({"env": task, **{k: str(v) for k, v in settings.items()}})
+        if cfg.dher_fraction != Config().dher_fraction:
             if algo == "rdher":  # as the authors'-share row names it: the task's paper pair
                 label += " ({}, {})".format(*map(num, TASK_TABLE[task].paper_lambdas))
-            label += f", share {num(share.dher_fraction)}"
+            label += f", share {num(cfg.dher_fraction)}"
     return label
 
 
