@@ -35,12 +35,12 @@ from profiles import (
     ALGO_LABELS,
     AUTHORS_SHARE,
     BENCHMARK_ALGOS,
-    TASK_TABLE,
     Setting,
     add_common_args,
     budget_for,
     named_sweeps,
     num,
+    paper_pair,
     run_experiment,
 )
 
@@ -58,11 +58,11 @@ def algo_label(algo: str, profile: str, task: str) -> str:
     table beside the authors'-share rows (``--settings``) tells the two apart."""
     label = ALGO_LABELS[algo]
     if algo in ("dher", "rdher"):
-        settings = budget_for(profile, task).resolved(None)
+        settings = budget_for(profile, task).settings  # the share needs no epoch count
         cfg = config_from_fields({"env": task, **{k: str(v) for k, v in settings.items()}})
         if cfg.dher_fraction != Config().dher_fraction:
             if algo == "rdher":  # as the authors'-share row names it: the task's paper pair
-                label += " ({}, {})".format(*map(num, TASK_TABLE[task].paper_lambdas))
+                label += " " + paper_pair(task)
             label += f", share {num(cfg.dher_fraction)}"
     return label
 

@@ -316,6 +316,12 @@ AUTHORS_SHARE: dict[str, NamedSetting] = {
 }
 
 
+def paper_pair(task: str) -> str:
+    """The task's paper pair (λ_r, λ_h) as labels write it, e.g. "(4, 0.5)"."""
+    lr, lh = TASK_TABLE[task].paper_lambdas
+    return f"({num(lr)}, {num(lh)})"
+
+
 def named_sweeps(table: Mapping[str, NamedSetting],
                  names: Sequence[str]) -> Callable[[str], list[tuple]]:
     """``sweeps(task)`` for :func:`make_jobs`: one sweep per name of ``table``, in the order
@@ -325,8 +331,7 @@ def named_sweeps(table: Mapping[str, NamedSetting],
         out = []
         for name in dict.fromkeys(names):
             label, algo, lambdas, extra, borrow = table[name]
-            lr, lh = TASK_TABLE[task].paper_lambdas
-            label = label.replace("{pair}", f"({num(lr)}, {num(lh)})")
+            label = label.replace("{pair}", paper_pair(task))
             setting = Setting(name, label, algo, lambdas[0] if lambdas else None,
                               list(table).index(name))
             out.append((algo if borrow else name, algo, lambdas, (setting,), extra, borrow))
