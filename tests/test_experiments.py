@@ -848,6 +848,23 @@ def test_against_her_paired_by_seed(tmp_path):
     diff, p, _, need = vs["final"]
     assert f"| {report.vs_cell(diff, p)} | {need:.0f} |" in md
     assert report._paired_lines([a]) == []  # no HER on the task: no section
+    assert "within one SE of 5%" in md
+
+
+def test_near_significance_is_one_standard_error_short_of_the_threshold():
+    """Table 2's rule (3 seeds, 5 where the difference is within one standard error of
+    significance): |t| at least t_crit - 1 and p not below 5%, checked against t itself."""
+    from scipy import stats as sps
+
+    crit = float(sps.t.ppf(0.975, 2))  # 3 seeds
+    just_in = 2 * float(sps.t.sf(crit - 0.99, 2))
+    just_out = 2 * float(sps.t.sf(crit - 1.01, 2))
+    assert report.near_significance(just_in, 3)
+    assert not report.near_significance(just_out, 3)
+    assert not report.near_significance(0.01, 3)  # significant already: no more seeds
+    assert not report.near_significance(0.5, 1) and not report.near_significance(math.nan, 3)
+    # More seeds, a lower threshold: the same p can be near at 5 seeds and not at 3.
+    assert report.near_significance(0.1, 5) and not report.near_significance(0.1, 3)
 
 
 def test_compare_is_welch_between_any_two_settings(tmp_path, capsys, one_line_error):
