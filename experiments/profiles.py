@@ -316,10 +316,14 @@ AUTHORS_SHARE: dict[str, NamedSetting] = {
 }
 
 
+def pair_label(lambda_r: float, lambda_h: float) -> str:
+    """A (λ_r, λ_h) pair as labels write it, e.g. "(4, 0.5)"."""
+    return f"({num(lambda_r)}, {num(lambda_h)})"
+
+
 def paper_pair(task: str) -> str:
-    """The task's paper pair (λ_r, λ_h) as labels write it, e.g. "(4, 0.5)"."""
-    lr, lh = TASK_TABLE[task].paper_lambdas
-    return f"({num(lr)}, {num(lh)})"
+    """The task's paper pair (λ_r, λ_h) as labels write it."""
+    return pair_label(*TASK_TABLE[task].paper_lambdas)
 
 
 def named_sweeps(table: Mapping[str, NamedSetting],

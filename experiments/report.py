@@ -39,9 +39,9 @@ from pathlib import Path
 from typing import Any
 
 from bench_learning import first_hit
+from profiles import pair_label
 
 from rdher_jax.runlog import write_text_atomic
-from rdher_jax.summary import num
 from rdher_jax.tasks import PAPER_TASKS, SOLVE_GOALS, TASKS
 
 HERE = Path(__file__).resolve().parent
@@ -421,7 +421,7 @@ def lam(s: SettingData) -> str:
 def pair_text(s: SettingData) -> str:
     """The (λ_r, λ_h) pair as a setting's label writes it, e.g. "(4, 0.5)"."""
     lr, lh = s.meta.get("lambda_r"), s.meta.get("lambda_h")
-    return "" if lr is None else f"({num(lr)}, {num(lh)})"  # as profiles.named_sweeps
+    return "" if lr is None else pair_label(lr, lh)  # as profiles.named_sweeps
 
 
 def legend_label(kind: str, s: SettingData, with_seeds: bool) -> str:
