@@ -111,3 +111,34 @@ def assert_same_rows(a, b, exact=False):
             else:
                 np.testing.assert_allclose(float(ra[k]), float(rb_[k]), rtol=1e-3, atol=1e-5,
                                            equal_nan=True, err_msg=k)
+
+
+# --- CHER: the stochastic greedy by plain loops ------------------------------------------------
+
+
+def cher_select_np(goals, prox, lam, noise, sample):
+    """CHER's stochastic greedy by plain loops (the reference for ``cher.select``).
+
+    Facility location over ``exp(-d^2 / mean(d)^2)`` minus ``lam`` times each candidate's
+    proximity. Pick ``k`` draws ``min(sample, n)`` of the ``n`` candidates not yet chosen without
+    replacement, by a partial Fisher-Yates shuffle of a list that holds the remaining
+    candidates first (uniform ``noise[k, j]`` picks place ``j + floor(u * (n - j))``, in
+    float32 as on device), and keeps the best gain; the chosen one moves to place ``n - 1``.
+    """
+    C = len(goals)
+    d = np.sqrt(((goals[:, None] - goals[None]) ** 2).sum(-1))
+    sim = np.exp(-(d**2) / (d.sum() / (C * (C - 1))) ** 2)
+    cover, perm, chosen = np.zeros(C), list(range(C)), []
+    for k, u in enumerate(np.asarray(noise, np.float32)):
+        n = C - k
+        m = min(sample, n)
+        for j in range(m):
+            r = j + min(int(np.floor(u[j] * np.float32(n - j))), n - j - 1)
+            perm[j], perm[r] = perm[r], perm[j]
+        gains = [np.maximum(sim[:, c] - cover, 0).sum() - lam * prox[c] for c in perm[:m]]
+        p = int(np.argmax(gains))
+        best = perm[p]
+        perm[p], perm[n - 1] = perm[n - 1], perm[p]
+        chosen.append(best)
+        cover = np.maximum(cover, sim[:, best])
+    return np.array(chosen)

@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import cher_select_np
 
 from rdher_jax import buffer as rb
 from rdher_jax import make_env, relabel
@@ -26,23 +27,6 @@ CFG = dict(env="FetchReach", algo="cher", n_cycles=N_CYCLES, n_batches=N_BATCHES
            buffer_size=2000, num_envs=2, n_test_rollouts=2, hidden=32, progress=False,
            cher_growth=GROWTH, cher_sample=3, backend="mujoco", scene="original")
 FIELDS = ("obs", "goal", "action", "reward", "ep", "t", "source")
-
-
-def select_np(goals, prox, lam, noise, sample):
-    """CHER's stochastic greedy by plain loops: each pick scores the ``sample`` not-yet-chosen
-    candidates with the largest noise and keeps the best gain of facility location over
-    ``exp(-d^2 / mean(d)^2)`` minus ``lam`` times the candidate's proximity."""
-    C = len(goals)
-    d = np.sqrt(((goals[:, None] - goals[None]) ** 2).sum(-1))
-    sim = np.exp(-(d**2) / (d.sum() / (C * (C - 1))) ** 2)
-    cover, chosen = np.zeros(C), []
-    for u in noise:
-        rest = [c for c in np.argsort(-u, kind="stable") if c not in chosen][:sample]
-        gains = [np.maximum(sim[:, c] - cover, 0).sum() - lam * prox[c] for c in rest]
-        best = rest[int(np.argmax(gains))]
-        chosen.append(best)
-        cover = np.maximum(cover, sim[:, best])
-    return np.array(chosen)
 
 
 @pytest.fixture(scope="module")
@@ -108,11 +92,11 @@ def test_cher_trains_on_its_greedy_selection(calls):
     differs_at_other_step = 0
     for want_step, (_, prox, noise, pool, got) in zip(EXPECTED_STEPS, calls, strict=True):
         goals = pool["goal"].astype(np.float64)
-        idx = select_np(goals, prox, GROWTH**want_step, noise, CFG["cher_sample"])
+        idx = cher_select_np(goals, prox, GROWTH**want_step, noise, CFG["cher_sample"])
         assert len(set(idx.tolist())) == len(idx)  # no candidate twice
         for f in FIELDS:
             np.testing.assert_array_equal(got[f], pool[f][idx], err_msg=f"{f} at {want_step}")
-        other = select_np(goals, prox, GROWTH ** (want_step + 4), noise, CFG["cher_sample"])
+        other = cher_select_np(goals, prox, GROWTH ** (want_step + 4), noise, CFG["cher_sample"])
         differs_at_other_step += not np.array_equal(other, idx)
     # The weight matters at these settings: a step off by 4 picks other rows for most batches.
     assert differs_at_other_step > len(calls) // 2

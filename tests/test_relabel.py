@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import cher_select_np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -260,35 +261,52 @@ def test_merge_equals_sort(seed, P, n):
     np.testing.assert_array_equal(np.asarray(i), [e[3] for e in want])
 
 
-def cher_select_np(goals, prox, lam, noise, sample):
-    """CHER's stochastic greedy, by plain loops (the reference)."""
-    C = len(goals)
-    d = np.sqrt(((goals[:, None] - goals[None]) ** 2).sum(-1))
-    mean_d = d.sum() / (C * (C - 1))
-    sim = np.exp(-(d**2) / mean_d**2)
-    cover = np.zeros(C)
-    chosen = []
-    for u in noise:
-        rest = [c for c in np.argsort(-u, kind="stable") if c not in chosen][:sample]
-        gains = [np.maximum(sim[:, c] - cover, 0).sum() - lam * prox[c] for c in rest]
-        best = rest[int(np.argmax(gains))]
-        chosen.append(best)
-        cover = np.maximum(cover, sim[:, best])
-    return np.array(chosen)
-
-
 @pytest.mark.parametrize("seed, lam", [(0, 1.0), (1, 30.0), (2, 0.0)])
 def test_cher_selection_matches_numpy(seed, lam):
     rng = np.random.default_rng(seed)
     C, K = 24, 10
     goals = rng.normal(0, 0.1, (C, D)).astype(np.float32)
     prox = rng.uniform(0, 0.3, C).astype(np.float32)
-    noise = rng.random((K, C)).astype(np.float32)
+    noise = rng.random((K, 3)).astype(np.float32)
     got = np.asarray(jax.jit(cher.select, static_argnums=4)(goals, prox, jnp.float32(lam),
                                                             noise, 3))
     want = cher_select_np(goals.astype(np.float64), prox, lam, noise, 3)
     np.testing.assert_array_equal(got, want)
     assert len(set(got.tolist())) == K  # no candidate twice
+
+
+@pytest.mark.parametrize("C, K", [(16, 16), (16, 15), (5, 5)])
+def test_cher_selection_takes_each_candidate_once_when_few_remain(C, K):
+    """With fewer than ``sample`` candidates left, only those are scored: at candidates ==
+    batch_size every candidate is chosen exactly once, whatever the gains (here half the goals
+    repeat one, so the last picks would gain most from a candidate already chosen)."""
+    rng = np.random.default_rng(C + K)
+    goals = rng.normal(0, 0.1, (C, D)).astype(np.float32)
+    goals[C // 2:] = goals[0]
+    prox = rng.uniform(0, 0.3, C).astype(np.float32)
+    noise = rng.random((K, 3)).astype(np.float32)
+    got = np.asarray(jax.jit(cher.select, static_argnums=4)(goals, prox, jnp.float32(5.0),
+                                                            noise, 3))
+    assert len(set(got.tolist())) == K
+    np.testing.assert_array_equal(got, cher_select_np(goals.astype(np.float64), prox, 5.0,
+                                                      noise, 3))
+
+
+def test_cher_selection_draws_its_candidates_uniformly():
+    """Equal goals and proximities give every scored candidate the same gain, so a pick keeps
+    its first draw: over many draws the first pick must be uniform over the candidates, and the
+    second uniform over the rest (chi-square against uniform, below its upper 0.1% quantile)."""
+    C, n = 12, 24_000
+    goals, prox = jnp.zeros((C, D)), jnp.zeros(C)
+    noise = jax.random.uniform(jax.random.PRNGKey(0), (n, 2, 3))
+    idx = np.asarray(jax.jit(jax.vmap(lambda u: cher.select(goals, prox, 0.0, u, 3)))(noise))
+    assert (idx[:, 0] != idx[:, 1]).all()
+    for counts, cells in ((np.bincount(idx[:, 0], minlength=C), C),
+                          (np.bincount(idx[:, 1] - (idx[:, 1] > idx[:, 0]), minlength=C - 1),
+                           C - 1)):
+        expected = n / cells
+        chi2 = float(((counts - expected) ** 2 / expected).sum())
+        assert chi2 < 31.3, (chi2, counts)  # the upper 0.1% quantile of chi2 with 11 d.o.f.
 
 
 def test_cher_sample_fields_come_from_candidates():

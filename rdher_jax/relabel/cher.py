@@ -13,9 +13,12 @@ chosen and keeps the best marginal gain.
 
 Two choices differ from the authors' code, for fixed shapes on device: the similarity is dense
 over all candidates (their facility location uses a 1-nearest-neighbour graph, which on device
-is no cheaper than the dense ``C x C`` matrix and makes the objective nearly modular), and the
-uniform draws among the remaining candidates are a Gumbel-style top-``sample`` of one uniform
-row per pick, which the numpy reference in the tests is fed.
+is no cheaper than the dense ``C x C`` matrix and makes the objective nearly modular), and each
+pick's uniform draw without replacement among the remaining candidates is a partial
+Fisher-Yates shuffle of a permutation that keeps the remaining candidates in its first places:
+``sample`` uniforms per pick (the numpy reference in the tests is fed the same uniforms), not
+one per candidate, and fewer than ``sample`` are scored when fewer remain, so no candidate is
+chosen twice even at ``candidates == batch_size``.
 
 At ``batch_size`` 256 the default is 512 candidates, the authors' ratio (64 of 128).
 """
@@ -52,39 +55,56 @@ def similarity(goals: jax.Array) -> jax.Array:
     return jnp.exp(-d2 / jnp.maximum(jnp.square(mean_d), 1e-12))
 
 
+def _swap(perm: jax.Array, i, j) -> jax.Array:
+    a, b = perm[i], perm[j]
+    return perm.at[i].set(b).at[j].set(a)
+
+
 def select(goals: jax.Array, proximity: jax.Array, lam: jax.Array, noise: jax.Array,
            sample: int) -> jax.Array:
     """Stochastic-greedy facility location with a proximity penalty.
+
+    A permutation of the candidates keeps the ``n = C - k`` not yet chosen in its first ``n``
+    places before pick ``k``. The pick draws its ``sample`` candidates by a partial
+    Fisher-Yates shuffle of those places (place ``j`` swaps with place
+    ``j + floor(noise[k, j] * (n - j))``), scores the first ``min(sample, n)`` places, and
+    swaps the chosen one to place ``n - 1``, out of the remaining.
 
     Args:
         goals: ``(C, d)`` candidate goals.
         proximity: ``(C,)`` ``||g - ag||`` of each candidate.
         lam: proximity weight.
-        noise: ``(K, C)`` uniforms; pick ``k`` scores the ``sample`` not-yet-chosen candidates
-            with the largest ``noise[k]`` (a uniform draw without replacement).
+        noise: ``(K, sample)`` uniforms in ``[0, 1)``, one row per pick.
         sample: candidates scored per pick.
 
     Returns:
-        ``(K,)`` int32 indices of the chosen candidates, in pick order.
+        ``(K,)`` int32 indices of the chosen candidates, in pick order, each at most once.
     """
     sim = similarity(goals)
     C = goals.shape[0]
 
-    # ``sim`` is exactly symmetric (each entry is a function of squared coordinate differences),
-    # so a candidate's column is read as its row: a contiguous slice rather than a strided
-    # gather, which halves the cost of a pick on a CPU (experiments/bench_relabel.py).
-    def pick(carry, u):
-        cover, chosen = carry
-        score = jnp.where(chosen, -1.0, u)
-        _, cand = jax.lax.top_k(score, sample)  # (sample,)
+    def pick(carry, x):
+        cover, perm = carry
+        u, k = x
+        n = C - k
+        for j in range(sample):
+            span = jnp.maximum(n - j, 1)
+            off = jnp.floor(u[j] * span.astype(u.dtype)).astype(jnp.int32)
+            perm = _swap(perm, j, jnp.where(j < n, j + jnp.minimum(off, span - 1), j))
+        cand = perm[:sample]
+        # ``sim`` is exactly symmetric (each entry is a function of squared coordinate
+        # differences), so a candidate's column is read as its row: a contiguous slice rather
+        # than a strided gather, twice as fast on a CPU (experiments/bench_relabel.py).
         gain = jnp.sum(jnp.maximum(sim[cand] - cover[None, :], 0.0), axis=1)
-        gain = gain - lam * proximity[cand]
-        best = cand[jnp.argmax(gain)]
-        return (jnp.maximum(cover, sim[best]), chosen.at[best].set(True)), best
+        gain = jnp.where(jnp.arange(sample) < n, gain - lam * proximity[cand], -jnp.inf)
+        p = jnp.argmax(gain)
+        best = cand[p]
+        return (jnp.maximum(cover, sim[best]), _swap(perm, p, n - 1)), best
 
-    init = (jnp.zeros((C,), sim.dtype), jnp.zeros((C,), bool))
-    _, idx = jax.lax.scan(pick, init, noise)
-    return idx.astype(jnp.int32)
+    K = noise.shape[0]
+    init = (jnp.zeros((C,), sim.dtype), jnp.arange(C, dtype=jnp.int32))
+    _, idx = jax.lax.scan(pick, init, (noise, jnp.arange(K, dtype=jnp.int32)))
+    return idx
 
 
 def build_cher(compute_reward: RewardFn, batch_size: int, candidates: int,
@@ -104,7 +124,7 @@ def build_cher(compute_reward: RewardFn, batch_size: int, candidates: int,
         k_her, k_sel = jax.random.split(key)
         draws = her.draw_her(k_her, buffer.num_episodes, buffer.horizon, candidates,
                              relabel_prob)
-        noise = jax.random.uniform(k_sel, (batch_size, candidates))
+        noise = jax.random.uniform(k_sel, (batch_size, sample_size))
         return draws, noise
 
     def sample(key, state, buffer: BufferState, params, step):
