@@ -90,6 +90,32 @@ def test_resume_after_sigkill_equals_uninterrupted(tmp_path):
         assert ra == rb
 
 
+@pytest.mark.skipif(not hasattr(os, "sched_setaffinity") or len(os.sched_getaffinity(0)) < 2,
+                    reason="needs a process that may use two cores")
+def test_one_core_and_every_core_give_the_same_rows(tmp_path):
+    """A seed's rows do not depend on how many cores the process may use (XLA sizes its thread
+    pool from the affinity mask): the learner at its full size (preset=fast on FetchPush,
+    256-wide networks, batches of 256) trained pinned to one core and on every core. The solve
+    study mixes both layouts (runs pinned one per core, and runs alone on the machine)."""
+    args = ["env=FetchPush", "preset=fast", "epochs=1", "n_cycles=2", "n_batches=8",
+            "n_test_rollouts=2", "progress=false", "seed=5"]
+    every = os.sched_getaffinity(0)
+    one = {min(every)}
+    procs = {name: _cli([*args, f"run_dir={tmp_path / name}"],
+                        preexec_fn=lambda cores=cores: os.sched_setaffinity(0, cores))
+             for name, cores in (("one", one), ("every", every))}
+    for p in procs.values():
+        _, err = p.communicate(timeout=600)
+        assert p.returncode == 0, err
+    a, b = (read_csv(tmp_path / name / "metrics.csv") for name in procs)
+    assert len(a) == len(b) == 1
+    for ra, rb in zip(a, b, strict=True):
+        ra.pop("wall_time"), rb.pop("wall_time")
+        assert ra == rb
+    infos = [json.loads((tmp_path / name / "run_info.json").read_text()) for name in procs]
+    assert [i["cpu_affinity"] for i in infos] == [1, len(every)]
+
+
 def test_nan_loss_stops_run_and_keeps_last_checkpoint(tmp_path, monkeypatch):
     real_build = executor.build
 
