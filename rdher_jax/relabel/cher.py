@@ -74,7 +74,7 @@ def select(goals: jax.Array, proximity: jax.Array, lam: jax.Array, noise: jax.Ar
         goals: ``(C, d)`` candidate goals.
         proximity: ``(C,)`` ``||g - ag||`` of each candidate.
         lam: proximity weight.
-        noise: ``(K, sample)`` uniforms in ``[0, 1)``, one row per pick.
+        noise: ``(K, sample)`` uniforms in ``[0, 1)``, one row per pick (``K <= C``).
         sample: candidates scored per pick.
 
     Returns:
