@@ -751,6 +751,15 @@ def report(args, cmd: str, info: dict) -> str:
     return "\n".join(L) + "\n"
 
 
+def growth_words(exponent: float) -> str:
+    """How a cost growing as ``size ** exponent`` reads in words."""
+    if exponent < 0.8:
+        return "less than linearly"
+    if exponent <= 1.2:
+        return "close to linearly"
+    return "faster than linearly (a noisy repeat, or caches outgrown)"
+
+
 def reading(info: dict) -> list[str]:
     p1, p2 = info["matching"], info["cycle"]
     rows = list(p1["rows"].items())
@@ -761,7 +770,8 @@ def reading(info: dict) -> list[str]:
         (s0, _), (s1, r1) = rows[-2], rows[-1]
         sa, ra = rows[0]
         out.append(
-            f"- Matching grows close to linearly: from {s0:.0e} to {s1:.0e} transitions the "
+            f"- Matching grows {growth_words(r1['exponent_from_previous'])}: from {s0:.0e} to "
+            f"{s1:.0e} transitions the "
             f"DHER update grows with exponent {r1['exponent_from_previous']:.2f}; at {s1:.0e} it "
             "takes "
             f"{fmt_ms(r1['update_s'])} ms per cycle ({r1['update_s'] / s1 * 1e9:.0f} ns per "
