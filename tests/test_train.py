@@ -93,10 +93,11 @@ def test_resume_after_sigkill_equals_uninterrupted(tmp_path):
 @pytest.mark.skipif(not hasattr(os, "sched_setaffinity") or len(os.sched_getaffinity(0)) < 2,
                     reason="needs a process that may use two cores")
 def test_one_core_and_every_core_give_the_same_rows(tmp_path):
-    """A seed's rows do not depend on how many cores the process may use (XLA sizes its thread
-    pool from the affinity mask): the learner at its full size (preset=fast on FetchPush,
-    256-wide networks, batches of 256) trained pinned to one core and on every core. The solve
-    study mixes both layouts (runs pinned one per core, and runs alone on the machine)."""
+    """A seed's rows do not depend on how many cores the process may use (the physics' and
+    XLA's thread pools are sized from the affinity mask): the learner at its full size
+    (preset=fast on FetchPush, 256-wide networks, batches of 256) trained pinned to one core and
+    on every core. The solve study mixes both layouts (runs pinned one per core, and runs alone
+    on the machine)."""
     args = ["env=FetchPush", "preset=fast", "epochs=1", "n_cycles=2", "n_batches=8",
             "n_test_rollouts=2", "progress=false", "seed=5"]
     every = os.sched_getaffinity(0)
