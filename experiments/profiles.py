@@ -601,6 +601,10 @@ def collect(job: Job, out_root: Path, command: str, log=print,
                           "status": r["status"],
                           "wall_clock_s": float(last["wall_time"])}
             done = int(last["epoch"]) >= job.epochs or r["status"] != "ok"
+            if not done:
+                log(f"[{job.task} {s.name} {name}] collected while under way: "
+                    f"{last['epoch']} of {job.epochs} epochs (quoted.py leaves it out of "
+                    "its figures until it finishes)")
             # The retest, and the longer test of the same policy (each kept from before while
             # the run has not changed, whatever this call asks for).
             for key, episodes, base, what in (

@@ -162,12 +162,17 @@ def seeds(ref: str, measure: str) -> dict[int, float]:
     test at ``x`` or above, ``to<x>m3`` to the first trailing mean of 3 tests there (a finished
     seed that never gets there counts its last env steps, a lower bound; one still short of its
     budget has no figure yet), ``to<x>_min`` / ``to<x>m3_min`` the same in minutes of the
-    training clock."""
+    training clock.
+
+    A run collected while still under way (:func:`report.under_way`) has no figure but the
+    steps to a threshold it has already reached: its best, final, mean, windows and
+    combined rows would change as it goes on, and a mean over seeds would mix it in."""
+    late = report.under_way(setting(ref))
     if m := re.fullmatch(r"w(\d)", measure):
         ws = report.window_seeds(setting(ref))
         if not 1 <= int(m[1]) <= len(ws):
             raise KeyError(f"windows are w1-w{len(ws)}")
-        return {k: 100 * v for k, v in ws[int(m[1]) - 1][1].items()}
+        return {k: 100 * v for k, v in ws[int(m[1]) - 1][1].items() if k not in late}
     if m := (HIT.fullmatch(measure) or HIT_MIN.fullmatch(measure)):
         s = setting(ref)
         want = report.budget_epochs(s)
@@ -181,7 +186,8 @@ def seeds(ref: str, measure: str) -> dict[int, float]:
             out[k] = scale * (hit if hit is not None else float(rows[-1][col]))
         return out
     if measure in MEASURES:
-        return {k: 100 * v for k, v in report.per_seed(setting(ref))[measure].items()}
+        return {k: 100 * v for k, v in report.per_seed(setting(ref))[measure].items()
+                if k not in late}
     if measure not in COLUMN_MEASURES:
         raise KeyError(f"no measure {measure!r} (one of {', '.join(MEASURES + COLUMN_MEASURES)}, "
                        "w<k>, to<x>, to<x>m3, to<x>_min, to<x>m3_min)")
@@ -190,6 +196,8 @@ def seeds(ref: str, measure: str) -> dict[int, float]:
     last = None if measure == "combined_run" else report.LAST
     out = {}
     for k, v in setting(ref).column(col).items():
+        if k in late:
+            continue
         xs = [x for x in (v if last is None else v[-last:]) if math.isfinite(x)]
         if xs:
             out[k] = scale * statistics.fmean(xs)

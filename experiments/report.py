@@ -441,10 +441,19 @@ def budget_epochs(s: SettingData) -> int | None:
     return None if want is None else int(want)
 
 
+def under_way(s: SettingData) -> set[int]:
+    """The seeds whose runs have not reached the budget's epochs and did not stop early (a
+    diverged run is finished short of its budget): collected while still running."""
+    want = budget_epochs(s)
+    if want is None:
+        return set()
+    status = {k: s.meta.get("runs", {}).get(f"s{k}", {}).get("status", "ok") for k in s.runs}
+    return {k for k, v in s.runs.items() if len(v) < want and status[k] == "ok"}
+
+
 def unfinished(s: SettingData) -> int:
     """How many of the setting's runs have not reached its budget's epochs yet."""
-    want = budget_epochs(s)
-    return 0 if want is None else sum(len(v) < want for v in s.runs.values())
+    return len(under_way(s))
 
 
 def epochs_cell(s: SettingData) -> str:

@@ -185,3 +185,29 @@ def test_steps_to_a_threshold_leave_out_runs_still_under_way(monkeypatch):
     assert quoted.seeds("x", "to0.9m3") == {0: 7500.0, 1: 10000.0, 3: 7500.0}
     assert quoted.seeds("x", "to0.9m3_min") == {0: 3.0, 1: 4.0, 3: 3.0}
     assert quoted.seeds("x", "to0.1") == {0: 2500.0, 1: 2500.0, 2: 2500.0, 3: 2500.0}
+
+
+def test_figures_over_seeds_leave_out_runs_still_under_way(monkeypatch):
+    """A run collected while still running (short of its budget, status ok) is in no best,
+    final, mean, window or combined-row figure, so a mean over seeds cannot mix a run at
+    epoch 2 with finished ones; a run that stopped early (diverged) is finished and counts."""
+    def rows(succ, frac):
+        return [{"epoch": str(i + 1), "env_steps": str(2500 * (i + 1)),
+                 "wall_time": str(60.0 * (i + 1)), "test_success": str(x),
+                 "frac_dher": str(frac)} for i, x in enumerate(succ)]
+
+    meta = {"budget": {"settings": {"epochs": 4}},
+            "runs": {"s0": {"status": "ok"}, "s1": {"status": "ok"},
+                     "s2": {"status": "diverged"}}}
+    s = report.SettingData("FetchPush", "dher", meta,
+                           {0: rows([0.2, 0.4, 0.6, 0.8], 0.5),  # finished
+                            1: rows([0.0, 0.0], 0.9),            # under way
+                            2: rows([0.1, 0.3], 0.1)})           # diverged at epoch 2
+    monkeypatch.setattr(quoted, "setting", lambda ref: s)
+    assert report.under_way(s) == {1}
+    assert quoted.seeds("x", "final") == pytest.approx({0: 60.0, 2: 20.0})
+    assert quoted.seeds("x", "mean") == pytest.approx({0: 50.0, 2: 20.0})
+    assert quoted.seeds("x", "best") == pytest.approx({0: 80.0, 2: 30.0})
+    assert quoted.seeds("x", "combined") == pytest.approx({0: 50.0, 2: 10.0})
+    assert set(quoted.seeds("x", "w1")) == {0, 2}
+    assert quoted.value("x:final:n") == 2
