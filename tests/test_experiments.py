@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import assert_same_rows
 
 EXP = Path(__file__).resolve().parents[1] / "experiments"
 sys.path.insert(0, str(EXP))
@@ -1182,3 +1183,39 @@ def test_bench_gpu_warp_runs_tiny_on_a_cpu(tmp_path):
     assert push["compile_s"] > 0 and len(push["epochs"]) == 1
     assert push["epochs"][0]["env_steps"] == 4 * 50
     assert "Warp env steps" in out.read_text()
+
+
+def test_pool_runs_each_seed_pinned_to_a_core_as_the_sweep_would(results, tmp_path, capsys):
+    """--cores: each seed a one-seed piece in a process of its own pinned to a listed core
+    (seed 0 in ``<sweep>``, seed 1 in ``<sweep>.s1-1``), then collected; each seed's rows are
+    the vmapped sweep's; the same command again runs nothing; a core this process may not use,
+    or an unfinished sweep of several seeds where a piece would go, is a one-line error."""
+    core = min(os.sched_getaffinity(0))
+    out, runs = tmp_path / "out", tmp_path / "runs"
+    args = ["--profile", "tiny", "--out", str(out), "--runs-dir", str(runs), "--no-progress",
+            "--eval-episodes", "0", "--algos", "her", "--cores", str(core)]
+    assert benchmark.main(args) == 0
+    printed = capsys.readouterr().out
+    assert "pool: 2 one-seed piece(s)" in printed and printed.count(": done in") == 2
+    task = runs / "benchmark/tiny/FetchReach"
+    assert yaml_seeds(task / "her") == [0] and yaml_seeds(task / "her.s1-1") == [1]
+    assert (task / "her.log").is_file() and (task / "her.s1-1.log").is_file()
+    for seed in (0, 1):  # a run of its own against the vmapped sweep: equal to float rounding
+        mine = read_csv(out / f"benchmark/tiny/FetchReach/her/s{seed}.csv")
+        assert len(mine) == 2
+        assert_same_rows(mine, read_csv(results["out"] /
+                                        f"benchmark/tiny/FetchReach/her/s{seed}.csv"))
+    assert benchmark.main(args) == 0
+    assert "pool: 0 one-seed piece(s)" in capsys.readouterr().out
+    bad = max(os.sched_getaffinity(0)) + 1
+    assert benchmark.main([*args[:-1], str(bad)]) == 2
+    assert f"--cores {bad}: this process may run on" in capsys.readouterr().err
+    whole = runs / "benchmark/tiny/FetchReach/ddpg"
+    whole.mkdir(parents=True)
+    (whole / "sweep.yaml").write_text("seeds:\n- 0\n- 1\n")
+    assert benchmark.main([*args[:-3], "ddpg", "--cores", str(core)]) == 2
+    assert "not a one-seed piece" in capsys.readouterr().err
+
+
+def yaml_seeds(d):
+    return profiles.yaml_seeds(d / "sweep.yaml")
