@@ -1041,6 +1041,15 @@ def run_experiment(kind: str, script: str, args: Any, argv: Sequence[str],
             if getattr(args, name) < 0:
                 raise ConfigError(f"--{name.replace('_', '-')} must be >= 0, got "
                                   f"{getattr(args, name)}")
+        keys = {"coordinator": args.coordinator, "num_processes": args.num_processes,
+                "process_id": args.process_id}
+        if args.cores is not None:
+            check_cores(args.cores)
+            if any(v is not None for v in keys.values()) or args.collect_only or \
+                    args.status or args.adopt is not None:
+                raise ConfigError("--cores runs its pieces as processes of its own: not with "
+                                  "--adopt, --status, --collect-only, --coordinator, "
+                                  "--num-processes or --process-id")
         if args.adopt is not None:
             return adopt_command(kind, args, sweeps)
         if args.status:
@@ -1049,14 +1058,6 @@ def run_experiment(kind: str, script: str, args: Any, argv: Sequence[str],
                                  args.epochs, sweeps, 0):
                 print("\n".join(status_lines(job)))
             return 0
-        keys = {"coordinator": args.coordinator, "num_processes": args.num_processes,
-                "process_id": args.process_id}
-        if args.cores is not None:
-            check_cores(args.cores)
-            if any(v is not None for v in keys.values()) or args.collect_only:
-                raise ConfigError("--cores runs its pieces as processes of its own: not with "
-                                  "--collect-only, --coordinator, --num-processes or "
-                                  "--process-id")
         # Every sweep of the experiment runs over all the processes; process 0 collects and
         # writes the results and the report.
         if not args.dry_run:

@@ -1210,6 +1210,8 @@ def test_pool_runs_each_seed_pinned_to_a_core_as_the_sweep_would(results, tmp_pa
     bad = max(os.sched_getaffinity(0)) + 1
     assert benchmark.main([*args[:-1], str(bad)]) == 2
     assert f"--cores {bad}: this process may run on" in capsys.readouterr().err
+    assert benchmark.main([*args, "--collect-only"]) == 2
+    assert "not with --adopt, --status, --collect-only" in capsys.readouterr().err
     whole = runs / "benchmark/tiny/FetchReach/ddpg"
     whole.mkdir(parents=True)
     (whole / "sweep.yaml").write_text("seeds:\n- 0\n- 1\n")
