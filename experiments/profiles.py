@@ -42,7 +42,8 @@ epochs); the next call without ``--adopt`` resumes it.
 On a many-core CPU the fastest layout is one run per core, each process pinned to its own
 (:func:`run_pool`, ``--cores``): every seed of every sweep named becomes a one-seed piece
 (``<sweep>`` for seed 0, ``<sweep>.s<K>-<K>`` for seed K), run in its own process pinned to a
-free core of those listed, the next starting as one ends; then everything is collected. On
+free core of those listed, the next starting as one ends; each setting is collected as its
+last piece ends. On
 the 2-core AMD EPYC of RESULTS.md two PickAndPlace runs pinned one per core took 1.4 times
 one run's time alone on both cores. A seed's rows do not depend on the layout
 (``tests/test_train.py``).
@@ -465,18 +466,21 @@ def check_cores(cores: Sequence[int]) -> list[int]:
 
 
 def run_pool(jobs: Sequence[Job], cores: Sequence[int], dry_run: bool = False, log=print,
-             poll_s: float = 2.0) -> int:
+             poll_s: float = 2.0, finished: Callable[[Job], None] | None = None) -> int:
     """Run every seed of ``jobs`` as a one-seed piece (:func:`seed_pieces`), each in a process
     of its own pinned to one of ``cores``, as many at once as there are cores, the next piece
     starting on the core the last one freed. Each piece's output goes to ``<sweep dir>.log``.
-    A piece killed with the pool resumes from its checkpoint when the same command runs again
-    (finished seeds are not run twice). Returns how many pieces failed."""
+    ``finished(job)`` is called as the last piece of a job ends (e.g. to collect it while the
+    others run). A piece killed with the pool resumes from its checkpoint when the same command
+    runs again (finished seeds are not run twice). Returns how many pieces failed."""
     import pickle
     import subprocess
     import sys
     import time
 
-    queue = [p for j in jobs if not j.borrowed for p in seed_pieces(j)]
+    pieces = {(j.task, j.name): (j, seed_pieces(j)) for j in jobs if not j.borrowed}
+    queue = [p for _, ps in pieces.values() for p in ps]
+    left = {key: len(ps) for key, (_, ps) in pieces.items()}
     log(f"pool: {len(queue)} one-seed piece(s) on core(s) {', '.join(map(str, cores))}"
         + (" (dry run)" if dry_run else ""))
     if dry_run:
@@ -516,6 +520,9 @@ def run_pool(jobs: Sequence[Job], cores: Sequence[int], dry_run: bool = False, l
                     failed += 1
                     log(f"[{p.task} {p.name} s{p.first_seed}] core {c}: failed (exit {rc}) "
                         f"after {took}; see {_rel(p.sweep_dir)}.log")
+                left[(p.task, p.name)] -= 1
+                if finished is not None and not left[(p.task, p.name)]:
+                    finished(pieces[(p.task, p.name)][0])
     finally:
         for proc, _, out, _ in running.values():  # interrupted: the pieces stop with the pool
             proc.terminate()
@@ -914,9 +921,10 @@ def add_common_args(ap: Any) -> None:
                     "retest (default 0: not; a test made before is kept)")
     ap.add_argument("--cores", type=int, nargs="+", default=None, metavar="CORE",
                     help="run every seed named as a one-seed piece in a process of its own "
-                    "pinned to one of these CPU cores, one piece per core at a time, then "
-                    "collect (each piece's output in <sweep dir>.log; the same command again "
-                    "resumes what was cut short and skips finished seeds)")
+                    "pinned to one of these CPU cores, one piece per core at a time, each "
+                    "setting collected as its last piece ends (each piece's output in <sweep "
+                    "dir>.log; the same command again resumes what was cut short and skips "
+                    "finished seeds)")
     ap.add_argument("--coordinator", default=None, metavar="HOST:PORT",
                     help="multi-process: process 0's coordination address; with "
                     "--num-processes and --process-id, each process started with the same "
@@ -1077,8 +1085,17 @@ def run_experiment(kind: str, script: str, args: Any, argv: Sequence[str],
         progress = sys.stderr.isatty() if args.progress is None else args.progress
         command = shlex.join(["python", f"experiments/{script}", *argv])
         failed = 0
-        if args.cores is not None:  # every piece first, then the collect below
-            failed = run_pool(jobs, args.cores, dry_run=args.dry_run)
+
+        def collect_now(job: Job) -> None:  # a setting whose pieces have all ended
+            import report
+
+            collect(job, args.out, command, eval_episodes=args.eval_episodes,
+                    keep_collected=args.keep_collected, precise_episodes=args.precise_episodes)
+            for p in report.write_reports(args.out, only={(kind, args.profile)}):
+                print(f"wrote {p}")
+
+        if args.cores is not None:  # every piece, each setting collected as it ends; then all
+            failed = run_pool(jobs, args.cores, dry_run=args.dry_run, finished=collect_now)
         for task in tasks:
             mine = [j for j in jobs if j.task == task]
             for job in mine:

@@ -1197,6 +1197,9 @@ def test_pool_runs_each_seed_pinned_to_a_core_as_the_sweep_would(results, tmp_pa
     assert benchmark.main(args) == 0
     printed = capsys.readouterr().out
     assert "pool: 2 one-seed piece(s)" in printed and printed.count(": done in") == 2
+    # collected as its last piece ended (before the final collect of every setting)
+    assert printed.index(": done in", printed.index(": done in") + 1) < \
+        printed.index("[FetchReach her] collected") < printed.rindex("[FetchReach her] collected")
     task = runs / "benchmark/tiny/FetchReach"
     assert yaml_seeds(task / "her") == [0] and yaml_seeds(task / "her.s1-1") == [1]
     assert (task / "her.log").is_file() and (task / "her.s1-1.log").is_file()
