@@ -873,6 +873,9 @@ def problem(q: Quote, root: Path = ROOT) -> str | None:
     if target != src.resolve():
         return (f"{where}: {q.name}: the link goes to {q.target}, not to the data the figure "
                 f"comes from ({src.resolve().relative_to(ROOT)})")
+    if isinstance(val, float) and not math.isfinite(val):
+        return (f"{where}: {q.name}: the data give {val!r} (e.g. no seed count detects a "
+                "difference of zero), which no figure can quote: rewrite the sentence")
     if isinstance(val, str | Duration):
         ok = render(val, q.text) == q.text
     else:
@@ -899,7 +902,10 @@ def write(files: list[Path] | None = None) -> int:
         out, at = [], 0
         for q in quotes(f):
             val = value(q.name)
-            new = render(val, q.text)
+            if isinstance(val, float) and not math.isfinite(val):  # left for --check to name
+                new = q.text
+            else:
+                new = render(val, q.text)
             if not same(new, q.text):
                 changed += 1
             else:

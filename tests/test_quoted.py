@@ -2,6 +2,7 @@
 the committed data they come from (experiments/quoted.py)."""
 
 import json
+import math
 import os
 import sys
 from pathlib import Path
@@ -211,3 +212,15 @@ def test_figures_over_seeds_leave_out_runs_still_under_way(monkeypatch):
     assert quoted.seeds("x", "combined") == pytest.approx({0: 50.0, 2: 10.0})
     assert set(quoted.seeds("x", "w1")) == {0, 2}
     assert quoted.value("x:final:n") == 2
+
+
+def test_a_figure_the_data_make_infinite_is_named_not_a_crash(tmp_path, monkeypatch):
+    """A figure whose value is no longer finite (the seeds to detect a difference that has
+    shrunk to zero) is left as written by --write and named by --check."""
+    md = tmp_path / "x.md"
+    md.write_text('n = [255](data "q:bs/pnp/x:policy:paired:seeds80")\n', encoding="utf-8")
+    monkeypatch.setattr(quoted, "value", lambda name: math.inf)
+    monkeypatch.setattr(quoted, "source", lambda name: tmp_path / "data")
+    assert quoted.write([md]) == 0 and "[255]" in md.read_text(encoding="utf-8")
+    n, bad = quoted.check([md], root=tmp_path)
+    assert n == 1 and len(bad) == 1 and "which no figure can quote" in bad[0]
