@@ -30,6 +30,7 @@ from .executor import Executor, executor_for, stack, tree_bytes
 from .outputs import Outputs, make_out_dir, reached_stop, run_info
 from .plan import DriveResult, Plan, TrainingDiverged, check_out_dir, check_process_count
 from .program import hparams_from_config
+from .runlog import DirLock
 
 __all__ = ["DriveResult", "Plan", "TrainingDiverged", "drive", "reached_stop"]
 
@@ -102,15 +103,30 @@ def drive(plan: Plan, argv: Sequence[str] = (), prog: str = "",
           log: Callable[[str], Any] = print,
           devices: Sequence[Any] | None = None) -> DriveResult:
     """Run (or continue) every run of ``plan`` as one program (the process set up first:
-    :func:`rdher_jax.startup.setup`)."""
+    :func:`rdher_jax.startup.setup`). The output directory is locked while it runs (process
+    0 holds :class:`rdher_jax.runlog.DirLock`): a second process on it is refused."""
+    lock = DirLock()
+    try:
+        return _drive(plan, argv, prog, log, devices, lock)
+    finally:
+        lock.release()
+
+
+def _drive(plan: Plan, argv: Sequence[str], prog: str, log: Callable[[str], Any],
+           devices: Sequence[Any] | None, lock: DirLock) -> DriveResult:
     processes, cfg, n = distributed.count(), plan.base, len(plan.runs)
     _refuse(plan, processes)
+    main = distributed.is_main()
+    if plan.resume and main:  # before compiling: a second process is refused at once
+        lock.hold(plan.out_dir, plan.kind)
     env, _, ex = executor_for(plan.runs, devices, vmapped=plan.vmapped)
     hps = ex.put(stack([hparams_from_config(c) for c in plan.runs]))
     keys = ex.put(stack([jax.random.PRNGKey(c.seed) for c in plan.runs]))
     ex.compile_ahead(keys, hps)
     ts = ex.init(keys, hps)
     make_out_dir(plan)
+    if main:
+        lock.hold(plan.out_dir, plan.kind)
     distributed.barrier("rdher_jax.drive.out_dir")
     out = Outputs(plan, processes, _info(plan, ex, ts, argv, prog, processes), log)
     start, restored, progress = out.open(

@@ -142,6 +142,46 @@ def make_dir(path: str | Path, what: str = "run_dir") -> Path:
     return path
 
 
+class DirLock:
+    """An exclusive lock on ``<dir>/.lock`` (``fcntl.flock``) while a process writes a run or
+    sweep directory: a second process started on the same directory (a resume while the run
+    still trains) would rewind the metrics and checkpoints under the first. The kernel drops
+    the lock with the process, so a killed run leaves nothing to clean up."""
+
+    def __init__(self) -> None:
+        self._file: Any = None
+
+    def hold(self, path: str | Path, what: str = "run_dir") -> None:
+        """Take the lock on ``path`` (once; later calls do nothing), or raise a one-line
+        ConfigError naming the process that holds it."""
+        if self._file is not None:
+            return
+        try:
+            import fcntl
+        except ImportError:  # not a POSIX system: no lock
+            return
+        f = open(Path(path) / ".lock", "a+", encoding="utf-8")  # noqa: SIM115 (held open)
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            f.seek(0)
+            pid = f.read().strip() or "unknown"
+            f.close()
+            raise ConfigError(f"{what} {path} is in use by another process (pid {pid}); two "
+                              "processes writing one directory corrupt it: wait for that one "
+                              "to end, or stop it, then resume") from None
+        f.seek(0)
+        f.truncate()
+        f.write(f"{os.getpid()}\n")
+        f.flush()
+        self._file = f
+
+    def release(self) -> None:
+        if self._file is not None:
+            self._file.close()  # closing the file drops the lock
+            self._file = None
+
+
 def _fsync_dir(path: Path) -> None:
     # Makes a rename durable; some filesystems refuse to open directories, which is harmless.
     with contextlib.suppress(OSError):

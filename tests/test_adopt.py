@@ -55,10 +55,13 @@ def bench(runs, out, *extra):
 
 
 def tree(d):
-    """The paths under ``d``, each checkpoint step a leaf (orbax's files inside it aside)."""
+    """The paths under ``d``, each checkpoint step a leaf (orbax's files inside it aside), but
+    the ``.lock`` a process that drove it leaves (runlog.DirLock: not content)."""
     out = set()
     for p in d.rglob("*"):
         parts = p.relative_to(d).parts
+        if parts == (".lock",):
+            continue
         cut = next((i for i, x in enumerate(parts) if x.isdigit()), None)
         out.add("/".join(parts if cut is None else (*parts[:cut], "<step>")))
     return out

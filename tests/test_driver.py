@@ -174,3 +174,29 @@ def test_a_sweeps_skipped_actor_steps_stay_skipped_under_vmap(n_batches, kept):
     states = jax.eval_shape(jax.vmap(program.init), keys, hps)
     text = str(jax.make_jaxpr(jax.vmap(program.epoch))(states, hps))
     assert ("cond[" in text) == kept
+
+
+def test_a_directory_another_process_writes_is_refused(tmp_path):
+    """While one process holds a run directory (DirLock, taken by every drive on process 0),
+    a resume of it is a one-line error naming that process, before anything is compiled or
+    rewound; the lock goes with its holder, and a run resumes once it is released."""
+    import os
+
+    from rdher_jax.runlog import DirLock
+
+    d = tmp_path / "run"
+    cfg = resolve(Config(**{**TINY, "algo": "her", "epochs": 1, "run_dir": str(d)}))
+    train_mod.train(cfg, log=lambda *a: None)
+    assert (d / ".lock").is_file()  # left behind, unlocked: the next run takes it
+    before = (d / "metrics.csv").read_bytes()
+    resume = train_mod.parse_train_args([f"resume={d}", "epochs=2"])
+    other = DirLock()
+    other.hold(d)
+    with pytest.raises(ConfigError, match=rf"run_dir {d} is in use by another process "
+                                          rf"\(pid {os.getpid()}\)"):
+        train_mod.train(resume, log=lambda *a: None)
+    assert (d / "metrics.csv").read_bytes() == before
+    other.hold(d)  # held already: nothing happens
+    other.release()
+    train_mod.train(resume, log=lambda *a: None)
+    assert len(read_rows(d / "metrics.csv")) == 2
