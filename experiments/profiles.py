@@ -43,10 +43,8 @@ On a many-core CPU the fastest layout is one run per core, each process pinned t
 (:func:`run_pool`, ``--cores``): every seed of every sweep named becomes a one-seed piece
 (``<sweep>`` for seed 0, ``<sweep>.s<K>-<K>`` for seed K), run in its own process pinned to a
 free core of those listed, the next starting as one ends; each setting is collected as its
-last piece ends. On
-the 2-core AMD EPYC of RESULTS.md two PickAndPlace runs pinned one per core took 1.4 times
-one run's time alone on both cores. A seed's rows do not depend on the layout
-(``tests/test_train.py``).
+last piece ends. RESULTS.md (section 2) has the minutes of runs so pinned against one run
+alone on both cores; a seed's rows do not depend on the layout (``tests/test_train.py``).
 """
 
 from __future__ import annotations
@@ -522,7 +520,11 @@ def run_pool(jobs: Sequence[Job], cores: Sequence[int], dry_run: bool = False, l
                         f"after {took}; see {_rel(p.sweep_dir)}.log")
                 left[(p.task, p.name)] -= 1
                 if finished is not None and not left[(p.task, p.name)]:
-                    finished(pieces[(p.task, p.name)][0])
+                    try:
+                        finished(pieces[(p.task, p.name)][0])
+                    except Exception as e:  # the other pieces train on; the end collects again
+                        log(f"[{p.task} {p.name}] collecting failed ({type(e).__name__}: {e}); "
+                            "the pieces go on")
     finally:
         for proc, _, out, _ in running.values():  # interrupted: the pieces stop with the pool
             proc.terminate()
