@@ -351,13 +351,22 @@ def named_sweeps(table: Mapping[str, NamedSetting],
     return sweeps
 
 
-def _finished(sweep_dir: Path, epochs: int) -> bool:
-    """Every run of the sweep has ``epochs`` epochs logged, or has diverged."""
+def _run_seeds(sweep_dir: Path, epochs: int) -> tuple[set[int], set[int]]:
+    """(every seed the sweep's summary lists, those with ``epochs`` epochs logged or
+    diverged); both empty where it has no summary yet."""
     try:
         rows = json.loads((sweep_dir / "summary.json").read_text(encoding="utf-8"))["runs"]
     except (OSError, ValueError, KeyError):
-        return False
-    return bool(rows) and all(r["epochs"] >= epochs or r["status"] != "ok" for r in rows)
+        return set(), set()
+    return ({int(r["seed"]) for r in rows},
+            {int(r["seed"]) for r in rows
+             if int(r.get("epochs", 0)) >= epochs or r.get("status", "ok") != "ok"})
+
+
+def _finished(sweep_dir: Path, epochs: int) -> bool:
+    """Every run of the sweep has ``epochs`` epochs logged, or has diverged."""
+    seeds, done = _run_seeds(sweep_dir, epochs)
+    return bool(seeds) and seeds == done
 
 
 def sweep_args(job: Job, progress: bool) -> tuple[list[str], str]:
@@ -400,15 +409,7 @@ def run_job(job: Job, progress: bool, dry_run: bool = False, log=print) -> str:
 
 def _seeds_done(job: Job) -> set[int]:
     """The seeds some sweep directory of ``job``'s setting holds finished (or diverged)."""
-    done = set()
-    for d in job.piece_dirs():
-        try:
-            runs = json.loads((d / "summary.json").read_text(encoding="utf-8"))["runs"]
-        except (OSError, ValueError, KeyError):
-            continue
-        done |= {int(r["seed"]) for r in runs
-                 if int(r.get("epochs", 0)) >= job.epochs or r.get("status", "ok") != "ok"}
-    return done
+    return set().union(*(_run_seeds(d, job.epochs)[1] for d in job.piece_dirs()))
 
 
 def seed_pieces(job: Job) -> list[Job]:
