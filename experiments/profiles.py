@@ -468,7 +468,10 @@ def run_pool(jobs: Sequence[Job], cores: Sequence[int], dry_run: bool = False, l
              poll_s: float = 2.0, finished: Callable[[Job], None] | None = None) -> int:
     """Run every seed of ``jobs`` as a one-seed piece (:func:`seed_pieces`), each in a process
     of its own pinned to one of ``cores``, as many at once as there are cores, the next piece
-    starting on the core the last one freed. Each piece's output goes to ``<sweep dir>.log``.
+    starting on the core the last one freed. Pieces go lowest seed first across the settings
+    (every setting's seed 0, then every setting's seed 1, ...): a study cut short holds the same
+    seeds of each setting, the unit of its paired comparisons, and settings compared by seed
+    run side by side, under the same load. Each piece's output goes to ``<sweep dir>.log``.
     ``finished(job)`` is called as the last piece of a job ends (e.g. to collect it while the
     others run). A piece killed with the pool resumes from its checkpoint when the same command
     runs again (finished seeds are not run twice). Returns how many pieces failed."""
@@ -478,7 +481,7 @@ def run_pool(jobs: Sequence[Job], cores: Sequence[int], dry_run: bool = False, l
     import time
 
     pieces = {(j.task, j.name): (j, seed_pieces(j)) for j in jobs if not j.borrowed}
-    queue = [p for _, ps in pieces.values() for p in ps]
+    queue = sorted((p for _, ps in pieces.values() for p in ps), key=lambda p: p.first_seed)
     left = {key: len(ps) for key, (_, ps) in pieces.items()}
     log(f"pool: {len(queue)} one-seed piece(s) on core(s) {', '.join(map(str, cores))}"
         + (" (dry run)" if dry_run else ""))
@@ -924,10 +927,10 @@ def add_common_args(ap: Any) -> None:
                     "retest (default 0: not; a test made before is kept)")
     ap.add_argument("--cores", type=int, nargs="+", default=None, metavar="CORE",
                     help="run every seed named as a one-seed piece in a process of its own "
-                    "pinned to one of these CPU cores, one piece per core at a time, each "
-                    "setting collected as its last piece ends (each piece's output in <sweep "
-                    "dir>.log; the same command again resumes what was cut short and skips "
-                    "finished seeds)")
+                    "pinned to one of these CPU cores, one piece per core at a time, lowest "
+                    "seed first across the settings, each setting collected as its last "
+                    "piece ends (each piece's output in <sweep dir>.log; the same command "
+                    "again resumes what was cut short and skips finished seeds)")
     ap.add_argument("--coordinator", default=None, metavar="HOST:PORT",
                     help="multi-process: process 0's coordination address; with "
                     "--num-processes and --process-id, each process started with the same "

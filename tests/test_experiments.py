@@ -1187,13 +1187,19 @@ def test_bench_gpu_warp_runs_tiny_on_a_cpu(tmp_path):
 
 def test_pool_runs_each_seed_pinned_to_a_core_as_the_sweep_would(results, tmp_path, capsys):
     """--cores: each seed a one-seed piece in a process of its own pinned to a listed core
-    (seed 0 in ``<sweep>``, seed 1 in ``<sweep>.s1-1``), then collected; each seed's rows are
+    (seed 0 in ``<sweep>``, seed 1 in ``<sweep>.s1-1``), lowest seed first across the
+    settings, then collected; each seed's rows are
     the vmapped sweep's; the same command again runs nothing; a core this process may not use,
     or an unfinished sweep of several seeds where a piece would go, is a one-line error."""
     core = min(os.sched_getaffinity(0))
     out, runs = tmp_path / "out", tmp_path / "runs"
     args = ["--profile", "tiny", "--out", str(out), "--runs-dir", str(runs), "--no-progress",
             "--eval-episodes", "0", "--algos", "her", "--cores", str(core)]
+    # lowest seed first across the settings, so matching seeds run side by side
+    assert benchmark.main([*args[:-3], "her", "ddpg", "--cores", str(core), "--dry-run"]) == 0
+    plan = [ln.split("]")[0] for ln in capsys.readouterr().out.splitlines() if ln.startswith("[")]
+    assert plan == ["[FetchReach her s0", "[FetchReach ddpg s0", "[FetchReach her s1",
+                    "[FetchReach ddpg s1"]
     assert benchmark.main(args) == 0
     printed = capsys.readouterr().out
     assert "pool: 2 one-seed piece(s)" in printed and printed.count(": done in") == 2
