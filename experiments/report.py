@@ -381,6 +381,100 @@ def _paired_lines(data: Sequence[SettingData]) -> list[str]:
             "rather than 3.", "", *_md_table(head, rows), ""]
 
 
+ALGO_NAMES = {"ddpg": "DDPG", "her": "HER", "cher": "CHER", "dher": "DHER", "rdher": "RDHER"}
+
+
+def _share(s: SettingData) -> tuple[str, ...]:
+    """The overrides that set ``s``'s share of DHER-combined rows (empty: the profile's)."""
+    return tuple(x for x in s.meta.get("extra") or () if x.startswith("dher_fraction="))
+
+
+def verdict(diffs: Stat) -> str:
+    """A paper's claim 'A > B' against the per-seed differences A - B (their :func:`stat`):
+    'holds' where the 95% interval of their mean lies above 0, 'reversed' where it lies below,
+    'level on every seed' where every difference is 0, 'undecided' otherwise or under 2 seeds
+    (the paired t-test at 5%, uncorrected)."""
+    if diffs.n < 2 or not (math.isfinite(diffs.lo) and math.isfinite(diffs.hi)):
+        return "undecided"
+    if diffs.std == 0 and diffs.mean == 0:
+        return "level on every seed"
+    return "holds" if diffs.lo > 0 else "reversed" if diffs.hi < 0 else "undecided"
+
+
+def holm(ps: Sequence[float], alpha: float = 0.05) -> list[bool]:
+    """Holm's step-down test over ``ps``: which reject at family-wise ``alpha`` (nan never)."""
+    order = sorted((p, i) for i, p in enumerate(ps) if math.isfinite(p))
+    out = [False] * len(ps)
+    for rank, (p, i) in enumerate(order):
+        if p > alpha / (len(order) - rank):
+            break
+        out[i] = True
+    return out
+
+
+def order_claims(task: str, ss: Sequence[SettingData]) -> list[dict[str, Any]]:
+    """Every ordering the paper's Table 2 states for ``task`` ('A > B' where its A row is above
+    its B row; ties state none), tested on ``ss``, the task's settings: one row per pair of
+    settings of A and B (DHER and RDHER paired only at the same share), on each run's best
+    policy retested (the paper's measure) where both have retests, else the best epoch. Row:
+    claim, a and b (the settings), measure, diff (points), lo, hi, p, n, verdict, holm."""
+    paper = TASKS[task].paper_table2 if task in TASKS else {}
+    algos = sorted((a for a in paper if a in ALGO_NAMES), key=lambda a: -paper[a])
+    rows: list[dict[str, Any]] = []
+    for a, b in itertools.combinations(algos, 2):
+        if paper[a] <= paper[b]:
+            continue
+        for sa in (s for s in ss if s.meta.get("algo") == a and s.runs):
+            for sb in (s for s in ss if s.meta.get("algo") == b and s.runs):
+                if {a, b} <= {"dher", "rdher"} and _share(sa) != _share(sb):
+                    continue
+                xa, xb = per_seed(sa), per_seed(sb)
+                measure = "policy" if set(xa["policy"]) & set(xb["policy"]) else "best"
+                diff, p, n = paired(xa[measure], xb[measure])
+                common = sorted(set(xa[measure]) & set(xb[measure]))
+                st = stat([_rate(xa[measure][k]) - _rate(xb[measure][k]) for k in common])
+                rows.append({"claim": f"{ALGO_NAMES[a]} {paper[a]} > {ALGO_NAMES[b]} {paper[b]}",
+                             "a": sa, "b": sb, "measure": measure, "diff": diff,
+                             "lo": st.lo, "hi": st.hi, "p": p, "n": n,
+                             "verdict": verdict(st)})
+    for r, ok in zip(rows, holm([r["p"] for r in rows]), strict=True):
+        r["holm"] = ok
+    return rows
+
+
+def _order_lines(data: Sequence[SettingData]) -> list[str]:
+    """The 'The paper's Table 2 order, claim by claim' section (benchmarks only)."""
+    rows = []
+    for task, ss in _by_task(data).items():
+        for r in order_claims(task, ss):
+            iv = ("-" if not math.isfinite(r["lo"]) else
+                  f"[{100 * r['lo'] + 0.0:+.1f}, {100 * r['hi'] + 0.0:+.1f}]")
+            rows.append([task, r["claim"], f"{r['a'].meta.get('label', r['a'].name)} − "
+                         f"{r['b'].meta.get('label', r['b'].name)}",
+                         "retest" if r["measure"] == "policy" else "best epoch",
+                         vs_cell(r["diff"], math.nan), iv,
+                         "-" if not math.isfinite(r["p"]) else f"{r['p']:.2g}", str(r["n"]),
+                         f"{r['verdict']} at {n_seeds(r['n'])}",
+                         ("yes" if r["holm"] else "no")
+                         if r["verdict"] in ("holds", "reversed") else "-"])
+    if not rows:
+        return []
+    return ["## The paper's Table 2 order, claim by claim", "",
+            "Each ordering the paper's Table 2 states for a task ('A > B': its A row above its "
+            "B row, with its figures), tested here on the same seeds of both settings: the "
+            "mean per-seed difference A − B in points of each run's best policy retested (the "
+            "paper's measure; the best epoch where a setting has no retest), its 95% t "
+            "interval and the paired t-test's two-sided p. Verdict: 'holds' where the interval "
+            "lies above 0, 'reversed' where it lies below, 'level' where every seed's "
+            "difference is 0, 'undecided' otherwise (a paired t-test at 5%, uncorrected). "
+            "'After Holm' says whether a 'holds' or 'reversed' survives Holm's correction "
+            "over the task's rows (family-wise 5%). DHER and RDHER are compared at the same "
+            "share of combined rows; the paper ran the authors'.", "",
+            *_md_table(["task", "paper's claim", "settings (A − B)", "measure",
+                        "A − B, points", "95% interval", "p", "seeds", "verdict",
+                        "after Holm"], rows), ""]
+
+
 def window_seeds(s: SettingData) -> list[tuple[str, dict[int, float]]]:
     """Per env-step window (the fractions :data:`WINDOWS` of the longest run's steps): each
     seed's mean test success over the epochs that end in the window (seeds with such epochs)."""
@@ -759,6 +853,8 @@ def summary_markdown(kind: str, profile: str, data: Sequence[SettingData]) -> st
     out.append("")
 
     out += _paired_lines(data)
+    if bench:
+        out += _order_lines(data)
 
     if kind in ("moving", "beyond"):
         out += ["## Over the budget: mean test success per env-step window (%)", "",

@@ -299,3 +299,57 @@ def test_legend_names_a_weighted_settings_pair_once():
     assert report.legend_label("benchmark", plain, False) == "RDHER (λ 4 / 0.5)"
     assert report.legend_label("benchmark", named, True) == "RDHER (4, 0.5), share 0.8, 2 seeds"
     assert report.legend_label("ablation", plain, False) == "RDHER"
+
+
+def test_holm_steps_down_and_stops_at_the_first_failure():
+    # sorted p 0.01 <= 0.05/3 rejects; 0.03 > 0.05/2 stops, so 0.04 is not tested
+    assert report.holm([0.01, 0.04, 0.03]) == [True, False, False]
+    assert report.holm([0.012, math.nan, 0.02]) == [True, False, True]  # 0.012 <= .025, .02 <= .05
+    assert report.holm([]) == []
+
+
+def test_table2_order_claims_pair_settings_by_seed_and_share():
+    """The paper's Table 2 order for FetchPush (RDHER 58 > HER 39 > DHER 21 > DDPG 15 > CHER 14)
+    tested claim by claim on hand-made retests: RDHER and DHER are paired only at the same share,
+    a setting without retests is compared on its best epoch, and each verdict follows the 95%
+    paired interval."""
+    def setting(name, algo, policy, best=None, extra=()):
+        runs = {f"s{k}": {"best_policy": {"success": x, "episodes": 100}}
+                for k, x in enumerate(policy or [])}
+        rows = {k: [{"epoch": "1", "env_steps": "100", "test_success": str(x)}]
+                for k, x in enumerate(best or [0.5] * len(policy or []))}
+        return report.SettingData(TASK, name, {"label": name, "algo": algo, "runs": runs,
+                                               "extra": list(extra)}, rows)
+
+    data = [setting("her", "her", [0.9, 0.8, 0.7]),
+            setting("rdher", "rdher", [0.5, 0.4, 0.35]),
+            setting("rdher_f0.8", "rdher", [0.9, 0.8, 0.7], extra=("dher_fraction=0.8",)),
+            setting("dher", "dher", [0.9, 0.7, 0.8]),
+            setting("ddpg", "ddpg", None, best=[0.1, 0.2, 0.0])]
+    rows = {(r["a"].name, r["b"].name): r for r in report.order_claims(TASK, data)}
+    # no DHER at the authors' share: RDHER at it meets DHER nowhere; CHER was not run
+    assert set(rows) == {("rdher", "her"), ("rdher_f0.8", "her"), ("rdher", "dher"),
+                         ("rdher", "ddpg"), ("rdher_f0.8", "ddpg"), ("her", "dher"),
+                         ("her", "ddpg"), ("dher", "ddpg")}
+    r = rows[("rdher", "her")]
+    assert r["claim"] == "RDHER 58 > HER 39" and r["measure"] == "policy" and r["n"] == 3
+    # differences -0.4, -0.4, -0.35: mean -0.38333, std 0.028868, half-width t(.975, 2) sd/√3
+    sd = math.sqrt(((0.4 - 0.38333333) ** 2 * 2 + (0.35 - 0.38333333) ** 2) / 2)
+    half = 4.302653 * sd / math.sqrt(3)
+    assert r["diff"] == pytest.approx(-0.383333, abs=1e-6)
+    assert (r["lo"], r["hi"]) == pytest.approx((-0.383333 - half, -0.383333 + half), abs=1e-5)
+    t = 0.383333 / (sd / math.sqrt(3))
+    assert r["p"] == pytest.approx(1 - t / math.sqrt(t * t + 2), rel=1e-4)
+    assert r["verdict"] == "reversed"
+    assert rows[("rdher_f0.8", "her")]["verdict"] == "level on every seed"
+    assert rows[("her", "dher")]["verdict"] == "undecided"  # 0, +0.1, -0.1
+    # DDPG has no retest: both sides on their best epochs, HER's 0.5 against 0.1, 0.2, 0.0
+    d = rows[("her", "ddpg")]
+    assert d["measure"] == "best" and d["diff"] == pytest.approx(0.4)
+    assert d["verdict"] == "holds"
+    md = report.summary_markdown("benchmark", "solve", data)
+    table = section(md, "The paper's Table 2 order, claim by claim")
+    assert "| FetchPush | RDHER 58 > HER 39 | rdher − her | retest | -38.3 | " in table[0]
+    assert table[0].endswith("| 3 | reversed at 3 seeds | yes |")
+    assert "## The paper's Table 2 order" not in report.summary_markdown("ablation", "solve",
+                                                                          data)
