@@ -245,8 +245,7 @@ def _versus(a: str, b: str, measure: str, test: list[str]) -> float:
     elif test in (["paired"], ["paired", "p"]):
         diff, p, _ = report.paired(xs, ys)
     elif test in (["paired", "lo"], ["paired", "hi"], ["paired", "sd"], ["paired", "seeds80"]):
-        common = sorted(set(xs) & set(ys))
-        st = report.stat([report._rate(xs[k]) - report._rate(ys[k]) for k in common])
+        st = report.paired_diffs(xs, ys)
         if test[1] == "seeds80":
             return seeds_for_power(st.mean, st.std, None)
         return scale * {"lo": st.lo, "hi": st.hi, "sd": st.std}[test[1]]

@@ -256,6 +256,13 @@ def paired(xs: Mapping[int, float], ys: Mapping[int, float]) -> tuple[float, flo
     return diff, p, len(common)
 
 
+def paired_diffs(xs: Mapping[int, float], ys: Mapping[int, float]) -> Stat:
+    """The per-seed differences xs - ys over the seeds both hold, on the rates as the t-tests
+    see them (:func:`_rate`), as a :func:`stat`: its mean, std and 95% interval are those of
+    :func:`paired`'s test."""
+    return stat([_rate(xs[k]) - _rate(ys[k]) for k in sorted(set(xs) & set(ys))])
+
+
 def seeds_for_power(diff: float, sd_a: float, sd_b: float | None, power: float = 0.8,
                     alpha: float = 0.05) -> float:
     """The fewest seeds per setting for a two-sided t-test at ``alpha`` to detect ``diff`` with
@@ -335,8 +342,7 @@ def vs_her_paired(s: SettingData, data: Sequence[SettingData]
     out = {}
     for k, _ in PAIRED_MEASURES:
         diff, p, n = paired(mine[k], ref[k])
-        common = sorted(set(mine[k]) & set(ref[k]))
-        st = stat([_rate(mine[k][c]) - _rate(ref[k][c]) for c in common])
+        st = paired_diffs(mine[k], ref[k])
         need = seeds_for_power(st.mean, st.std, None) \
             if n >= 2 and math.isfinite(st.std) and st.std > 0 and st.mean != 0 else math.nan
         out[k] = (diff, p, n, need)
@@ -431,8 +437,7 @@ def order_claims(task: str, ss: Sequence[SettingData]) -> list[dict[str, Any]]:
                 xa, xb = per_seed(sa), per_seed(sb)
                 measure = "policy" if set(xa["policy"]) & set(xb["policy"]) else "best"
                 diff, p, n = paired(xa[measure], xb[measure])
-                common = sorted(set(xa[measure]) & set(xb[measure]))
-                st = stat([_rate(xa[measure][k]) - _rate(xb[measure][k]) for k in common])
+                st = paired_diffs(xa[measure], xb[measure])
                 rows.append({"claim": f"{ALGO_NAMES[a]} {paper[a]} > {ALGO_NAMES[b]} {paper[b]}",
                              "a": sa, "b": sb, "measure": measure, "diff": diff,
                              "lo": st.lo, "hi": st.hi, "p": p, "n": n,
