@@ -1028,6 +1028,7 @@ def figure(kind: str, profile: str, data: Sequence[SettingData], x_col: str, pat
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import EngFormatter
 
     tasks = list(_by_task(data))
     ncols = min(len(tasks), 2)
@@ -1061,6 +1062,8 @@ def figure(kind: str, profile: str, data: Sequence[SettingData], x_col: str, pat
                     label="paper, Table 2 (best policy)")
         ax.set_title(task if window == 1 else f"{task} (trailing mean of {window} tests)")
         ax.set_xlabel("epoch" if x_col == "epoch" else "env steps per run")
+        if x_col != "epoch":  # 500k, 1M, 2M on every panel, no shared 1e6 offset on some
+            ax.xaxis.set_major_formatter(EngFormatter(sep=""))
         late = sum(unfinished(s) for s in data if s.task == task)
         ax.set_ylabel(f"test success (median, IQR; "
                       f"{n_seeds(min(counts)) if len(counts) == 1 else 'over seeds'}"
