@@ -399,11 +399,13 @@ def verdict(diffs: Stat) -> str:
     """A paper's claim 'A > B' against the per-seed differences A - B (their :func:`stat`):
     'holds' where the 95% interval of their mean lies above 0, 'reversed' where it lies below,
     'level on every seed' where every difference is 0, 'undecided' otherwise or under 2 seeds
-    (the paired t-test at 5%, uncorrected)."""
+    (the paired t-test at 5%, uncorrected). The same non-zero difference on every seed is
+    'undecided' too: the t-test has no p there (:func:`paired`), so Holm could not pass it,
+    and a verdict never reads stronger than its test."""
     if diffs.n < 2 or not (math.isfinite(diffs.lo) and math.isfinite(diffs.hi)):
         return "undecided"
-    if diffs.std == 0 and diffs.mean == 0:
-        return "level on every seed"
+    if diffs.std < 1e-9:
+        return "level on every seed" if abs(diffs.mean) < 1e-9 else "undecided"
     return "holds" if diffs.lo > 0 else "reversed" if diffs.hi < 0 else "undecided"
 
 

@@ -308,6 +308,16 @@ def test_holm_steps_down_and_stops_at_the_first_failure():
     assert report.holm([]) == []
 
 
+def test_verdict_never_reads_stronger_than_the_paired_test():
+    assert report.verdict(report.stat([0.2, 0.3, 0.25])) == "holds"
+    assert report.verdict(report.stat([-0.2, -0.3, -0.25])) == "reversed"
+    assert report.verdict(report.stat([0.0, 0.0, 0.0])) == "level on every seed"
+    assert report.verdict(report.stat([0.3])) == "undecided"  # one seed
+    # the same difference on every seed: a point interval, but the t-test gives no p
+    assert math.isnan(report.paired({0: 0.5, 1: 0.6}, {0: 0.4, 1: 0.5})[1])
+    assert report.verdict(report.stat([0.1, 0.1, 0.1])) == "undecided"
+
+
 def test_table2_order_claims_pair_settings_by_seed_and_share():
     """The paper's Table 2 order for FetchPush (RDHER 58 > HER 39 > DHER 21 > DDPG 15 > CHER 14)
     tested claim by claim on hand-made retests: RDHER and DHER are paired only at the same share,
