@@ -425,7 +425,9 @@ def order_claims(task: str, ss: Sequence[SettingData]) -> list[dict[str, Any]]:
     its B row; ties state none), tested on ``ss``, the task's settings: one row per pair of
     settings of A and B (DHER and RDHER paired only at the same share), on each run's best
     policy retested (the paper's measure) where both have retests, else the best epoch. Row:
-    claim, a and b (the settings), measure, diff (points), lo, hi, p, n, verdict, holm."""
+    claim, a and b (the settings), measure, diff (points), lo, hi, p, n, verdict, holm (whether
+    Holm's correction over the task's rows keeps it) and family (how many rows have a p: the
+    family Holm corrects over, which grows as a task's settings run)."""
     paper = TASKS[task].paper_table2 if task in TASKS else {}
     algos = sorted((a for a in paper if a in ALGO_NAMES), key=lambda a: -paper[a])
     rows: list[dict[str, Any]] = []
@@ -444,8 +446,9 @@ def order_claims(task: str, ss: Sequence[SettingData]) -> list[dict[str, Any]]:
                              "a": sa, "b": sb, "measure": measure, "diff": diff,
                              "lo": st.lo, "hi": st.hi, "p": p, "n": n,
                              "verdict": verdict(st)})
+    family = sum(math.isfinite(r["p"]) for r in rows)
     for r, ok in zip(rows, holm([r["p"] for r in rows]), strict=True):
-        r["holm"] = ok
+        r["holm"], r["family"] = ok, family
     return rows
 
 
@@ -462,7 +465,7 @@ def _order_lines(data: Sequence[SettingData]) -> list[str]:
                          vs_cell(r["diff"], math.nan), iv,
                          "-" if not math.isfinite(r["p"]) else f"{r['p']:.2g}", str(r["n"]),
                          f"{r['verdict']} at {n_seeds(r['n'])}",
-                         ("yes" if r["holm"] else "no")
+                         f"{'yes' if r['holm'] else 'no'} (of {r['family']})"
                          if r["verdict"] in ("holds", "reversed") else "-"])
     if not rows:
         return []
@@ -475,7 +478,9 @@ def _order_lines(data: Sequence[SettingData]) -> list[str]:
             "lies above 0, 'reversed' where it lies below, 'level' where every seed's "
             "difference is 0, 'undecided' otherwise (a paired t-test at 5%, uncorrected). "
             "'After Holm' says whether a 'holds' or 'reversed' survives Holm's correction "
-            "over the task's rows (family-wise 5%). DHER and RDHER are compared at the same "
+            "over the task's rows that have a p (family-wise 5%; their number in brackets: "
+            "the family grows as a task's settings run, and a 'yes' over a few rows can "
+            "become a 'no' over all of them). DHER and RDHER are compared at the same "
             "share of combined rows; the paper ran the authors'.", "",
             *_md_table(["task", "paper's claim", "settings (A − B)", "measure",
                         "A − B, points", "95% interval", "p", "seeds", "verdict",
