@@ -726,6 +726,25 @@ for _f in (min, max):
             lambda f: f(_over(SLIDE_COMBINED, "combined_run")), _f))
 
 
+@functools.cache
+def _claims(task: str) -> tuple[dict, ...]:
+    """The solve benchmark's claim-by-claim rows for ``task`` (report.order_claims)."""
+    ss = [report.read_setting(d.parent) for d in sorted((RESULTS / "benchmark/solve" / task)
+                                                        .glob("*/run_info.json"))]
+    return tuple(report.order_claims(task, ss))
+
+
+for _abbr in ("push", "slide", "pnp"):
+    add(f"bs/{_abbr}:claims", f"benchmark/solve/{TASKS[_abbr]}", f"{TASKS[_abbr]}, solve study: "
+        "the claims of the paper's Table 2 order tested with a p (the family Holm corrects over)",
+        functools.partial(lambda t: sum(math.isfinite(r["p"]) for r in _claims(t)),
+                          TASKS[_abbr]))
+    add(f"bs/{_abbr}:claims:holm", f"benchmark/solve/{TASKS[_abbr]}", "the same: how many of "
+        "them hold or are reversed after Holm's correction", functools.partial(
+            lambda t: sum(bool(r["holm"]) and r["verdict"] in ("holds", "reversed")
+                          for r in _claims(t)), TASKS[_abbr]))
+
+
 def _floor(task: str) -> dict:
     rows = json.loads((RESULTS / "floor.json").read_text(encoding="utf-8"))["rows"]
     return next(r for r in rows if r["task"] == task)
