@@ -26,7 +26,8 @@ rdher``. A *measure* is one of report.py's per-seed figures (:func:`report.per_s
 all epochs), ``policy`` (the best policy retested), ``precise`` (the same policy on more
 episodes, ``--precise-episodes``); all in %. Also ``combined`` (the share of
 DHER-combined rows in a batch, the CSVs' ``frac_dher``, mean of the last 3 epochs, %),
-``combined_run`` (the same over every epoch) and the bias columns (``bias_real``,
+``combined_run`` (the same over every epoch), ``train`` (the training episodes' success, the
+CSVs' ``train_success``, mean of the last 3 epochs, %) and the bias columns (``bias_real``,
 ``bias_unw_her``, ...: mean of the last 3 epochs, as summary.md's diagnostic). Also ``w1``,
 ``w2``, ``w3``: the mean test success over summary.md's env-step windows (report.windows: the
 first 40%, the next 40%, the last 20% of the steps), %; ``to0.5``: the env steps to the first
@@ -128,7 +129,7 @@ def run_info(ref: str) -> dict:
     return setting(ref).meta
 
 
-COLUMN_MEASURES = ("combined", "combined_run", *report.BIAS_COLS)
+COLUMN_MEASURES = ("combined", "combined_run", "train", *report.BIAS_COLS)
 HIT = re.compile(r"to(\d*\.?\d+)(m3)?")  # to0.5: first test at 0.5; to0.9m3: trailing mean of 3
 # to0.9m3_min: the same, in minutes of the training clock (metrics.csv's wall_time)
 HIT_MIN = re.compile(r"to(\d*\.?\d+)(m3)?_min")
@@ -155,14 +156,14 @@ def first_hit(rows: list[dict[str, str]], threshold: float, window: int = 1,
 def seeds(ref: str, measure: str) -> dict[int, float]:
     """Per seed, ``measure`` of setting ``ref``, in the units the prose quotes it in: report.py's
     rates in % (``best``, ``final``, ``mean``, ``policy``); ``combined``, the share of DHER-
-    combined rows in a batch (``frac_dher``), mean of the last 3 epochs, in %, and
-    ``combined_run`` the same over every epoch; a bias column (``bias_real``, ...), mean of its
-    finite values over the last 3 epochs, as summary.md's diagnostic; ``w1``-``w3`` the mean
-    test success over summary.md's env-step windows, in %; ``to<x>`` the env steps to the first
-    test at ``x`` or above, ``to<x>m3`` to the first trailing mean of 3 tests there (a finished
-    seed that never gets there counts its last env steps, a lower bound; one still short of its
-    budget has no figure yet), ``to<x>_min`` / ``to<x>m3_min`` the same in minutes of the
-    training clock.
+    combined rows in a batch (``frac_dher``), mean of the last 3 epochs, in %, and ``combined_run``
+    the same over every epoch; ``train`` the training episodes' success (``train_success``), mean of
+    the last 3 epochs, in %; a bias column (``bias_real``, ...), mean of its finite values over the
+    last 3 epochs, as summary.md's diagnostic; ``w1``-``w3`` the mean test success over summary.md's
+    env-step windows, in %; ``to<x>`` the env steps to the first test at ``x`` or above, ``to<x>m3``
+    to the first trailing mean of 3 tests there (a finished seed that never gets there counts its
+    last env steps, a lower bound; one still short of its budget has no figure yet), ``to<x>_min`` /
+    ``to<x>m3_min`` the same in minutes of the training clock.
 
     A run collected while still under way (:func:`report.under_way`) has no figure but the
     steps to a threshold it has already reached: its best, final, mean, windows and
@@ -191,8 +192,9 @@ def seeds(ref: str, measure: str) -> dict[int, float]:
     if measure not in COLUMN_MEASURES:
         raise KeyError(f"no measure {measure!r} (one of {', '.join(MEASURES + COLUMN_MEASURES)}, "
                        "w<k>, to<x>, to<x>m3, to<x>_min, to<x>m3_min)")
-    col = "frac_dher" if measure.startswith("combined") else measure
-    scale = 100 if col == "frac_dher" else 1
+    col = ("frac_dher" if measure.startswith("combined") else
+           "train_success" if measure == "train" else measure)
+    scale = 100 if col in ("frac_dher", "train_success") else 1
     last = None if measure == "combined_run" else report.LAST
     out = {}
     for k, v in setting(ref).column(col).items():

@@ -195,7 +195,8 @@ def test_figures_over_seeds_leave_out_runs_still_under_way(monkeypatch):
     def rows(succ, frac):
         return [{"epoch": str(i + 1), "env_steps": str(2500 * (i + 1)),
                  "wall_time": str(60.0 * (i + 1)), "test_success": str(x),
-                 "frac_dher": str(frac)} for i, x in enumerate(succ)]
+                 "frac_dher": str(frac), "train_success": str(x / 4)}
+                for i, x in enumerate(succ)]
 
     meta = {"budget": {"settings": {"epochs": 4}},
             "runs": {"s0": {"status": "ok"}, "s1": {"status": "ok"},
@@ -210,6 +211,8 @@ def test_figures_over_seeds_leave_out_runs_still_under_way(monkeypatch):
     assert quoted.seeds("x", "mean") == pytest.approx({0: 50.0, 2: 20.0})
     assert quoted.seeds("x", "best") == pytest.approx({0: 80.0, 2: 30.0})
     assert quoted.seeds("x", "combined") == pytest.approx({0: 50.0, 2: 10.0})
+    # the training episodes' success, mean of the last 3 epochs: (0.4 + 0.6 + 0.8) / 4 / 3
+    assert quoted.seeds("x", "train") == pytest.approx({0: 15.0, 2: 5.0})
     assert set(quoted.seeds("x", "w1")) == {0, 2}
     assert quoted.value("x:final:n") == 2
 
