@@ -730,9 +730,8 @@ for _f in (min, max):
 
 @functools.cache
 def _claims(task: str) -> tuple[dict, ...]:
-    """The solve benchmark's claim-by-claim rows for ``task`` (report.order_claims)."""
-    ss = [report.read_setting(d.parent) for d in sorted((RESULTS / "benchmark/solve" / task)
-                                                        .glob("*/run_info.json"))]
+    """The solve benchmark's claim-by-claim rows for ``task``, as its summary.md has them."""
+    ss = [s for s in report.load(RESULTS / "benchmark/solve") if s.task == task]
     return tuple(report.order_claims(task, ss))
 
 
