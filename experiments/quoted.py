@@ -91,9 +91,9 @@ import report  # noqa: E402
 
 ROOT = HERE.parent
 RESULTS = HERE / "results"
-KINDS = {"ac": "ablation/cpu", "ap": "ablation/paper", "bc": "benchmark/cpu",
-         "bp": "benchmark/paper", "bs": "benchmark/solve", "yc": "beyond/cpu",
-         "yp": "beyond/paper", "ys": "beyond/solve", "mc": "moving/cpu"}
+KINDS = {"ac": "ablation/cpu", "ap": "ablation/paper", "as": "ablation/solve",
+         "bc": "benchmark/cpu", "bp": "benchmark/paper", "bs": "benchmark/solve",
+         "yc": "beyond/cpu", "yp": "beyond/paper", "ys": "beyond/solve", "mc": "moving/cpu"}
 TASKS = {"reach": "FetchReach", "push": "FetchPush", "slide": "FetchSlide",
          "pnp": "FetchPickAndPlace", "pushm": "FetchPushMoving", "reachm": "FetchReachMoving"}
 MEASURES = ("best", "final", "mean", "policy", "precise")
