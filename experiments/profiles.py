@@ -412,12 +412,32 @@ def _seeds_done(job: Job) -> set[int]:
     return set().union(*(_run_seeds(d, job.epochs)[1] for d in job.piece_dirs()))
 
 
-def seed_pieces(job: Job) -> list[Job]:
+def collected_seeds(job: Job, out_root: Path) -> set[int]:
+    """The seeds ``job`` has collected, finished, into every setting it feeds under
+    ``out_root``: each with its CSV and a ``run_info.json`` entry of all its epochs (or
+    diverged). They are done even where no sweep directory holds them any more (checkpoints
+    are never committed, so a study resumed on another machine has only these)."""
+    done: set[int] | None = None
+    for s in job.outputs:
+        dest = out_root / job.kind / job.profile / job.task / s.name
+        try:
+            runs = json.loads((dest / "run_info.json").read_text(encoding="utf-8"))["runs"]
+        except (OSError, ValueError, KeyError):
+            return set()
+        mine = {int(n[1:]) for n, r in runs.items()
+                if re.fullmatch(r"s\d+", n) and (dest / f"{n}.csv").is_file()
+                and (int(r.get("epochs", 0)) >= job.epochs or r.get("status", "ok") != "ok")}
+        done = mine if done is None else done & mine
+    return done or set()
+
+
+def seed_pieces(job: Job, out_root: Path | None = None) -> list[Job]:
     """``job``'s seeds (first_seed..seeds-1) as one-seed pieces, but those finished already in
-    any of the setting's sweep directories (a whole sweep's or a piece's)."""
+    any of the setting's sweep directories (a whole sweep's or a piece's) and, given
+    ``out_root`` (``--keep-collected``), those collected there (:func:`collected_seeds`)."""
     import dataclasses
 
-    done = _seeds_done(job)
+    done = _seeds_done(job) | (collected_seeds(job, out_root) if out_root else set())
     out = [dataclasses.replace(job, first_seed=k, seeds=k + 1)
            for k in range(job.first_seed, job.seeds) if k not in done]
     for p in out:  # seed 0's piece is the whole sweep's directory: it must hold seed 0 alone
@@ -465,8 +485,10 @@ def check_cores(cores: Sequence[int]) -> list[int]:
 
 
 def run_pool(jobs: Sequence[Job], cores: Sequence[int], dry_run: bool = False, log=print,
-             poll_s: float = 2.0, finished: Callable[[Job], None] | None = None) -> int:
-    """Run every seed of ``jobs`` as a one-seed piece (:func:`seed_pieces`), each in a process
+             poll_s: float = 2.0, finished: Callable[[Job], None] | None = None,
+             out_root: Path | None = None) -> int:
+    """Run every seed of ``jobs`` as a one-seed piece (:func:`seed_pieces`; given ``out_root``,
+    not the seeds collected there, finished), each in a process
     of its own pinned to one of ``cores``, as many at once as there are cores, the next piece
     starting on the core the last one freed. Pieces go lowest seed first across the settings
     (every setting's seed 0, then every setting's seed 1, ...): a study cut short holds the same
@@ -480,7 +502,14 @@ def run_pool(jobs: Sequence[Job], cores: Sequence[int], dry_run: bool = False, l
     import sys
     import time
 
-    pieces = {(j.task, j.name): (j, seed_pieces(j)) for j in jobs if not j.borrowed}
+    pieces = {(j.task, j.name): (j, seed_pieces(j, out_root)) for j in jobs if not j.borrowed}
+    if out_root is not None:
+        for j in jobs:
+            kept = sorted(k for k in collected_seeds(j, out_root) - _seeds_done(j)
+                          if j.first_seed <= k < j.seeds) if not j.borrowed else []
+            if kept:
+                log(f"[{j.task} {j.name}] seed(s) {', '.join(map(str, kept))} collected in "
+                    f"{out_root}, finished, no sweep directory: not run again")
     queue = sorted((p for _, ps in pieces.values() for p in ps), key=lambda p: p.first_seed)
     left = {key: len(ps) for key, (_, ps) in pieces.items()}
     log(f"pool: {len(queue)} one-seed piece(s) on core(s) {', '.join(map(str, cores))}"
@@ -914,7 +943,8 @@ def add_common_args(ap: Any) -> None:
     ap.add_argument("--keep-collected", action="store_true",
                     help="when collecting, keep the seeds already in --out whose sweep "
                     "directories are gone (a setting run in pieces on machines that do not "
-                    "share --runs-dir); without it such seeds are removed")
+                    "share --runs-dir), and with --cores do not run them again; without it "
+                    "such seeds are removed")
     ap.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                     help="progress bars (default: when stderr is a terminal)")
     ap.add_argument("--eval-episodes", type=int, default=EVAL_EPISODES, metavar="N",
@@ -1101,7 +1131,8 @@ def run_experiment(kind: str, script: str, args: Any, argv: Sequence[str],
                 print(f"wrote {p}")
 
         if args.cores is not None:  # every piece, each setting collected as it ends; then all
-            failed = run_pool(jobs, args.cores, dry_run=args.dry_run, finished=collect_now)
+            failed = run_pool(jobs, args.cores, dry_run=args.dry_run, finished=collect_now,
+                              out_root=args.out if args.keep_collected else None)
         for task in tasks:
             mine = [j for j in jobs if j.task == task]
             for job in mine:

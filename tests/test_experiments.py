@@ -1216,6 +1216,16 @@ def test_pool_runs_each_seed_pinned_to_a_core_as_the_sweep_would(results, tmp_pa
                                         f"benchmark/tiny/FetchReach/her/s{seed}.csv"))
     assert benchmark.main(args) == 0
     assert "pool: 0 one-seed piece(s)" in capsys.readouterr().out
+    # another machine: the sweep directories are gone, the collected results are not; with
+    # --keep-collected the collected seeds are done, without it they would run again
+    runs.rename(tmp_path / "runs.gone")
+    assert benchmark.main([*args, "--keep-collected", "--dry-run"]) == 0
+    printed = capsys.readouterr().out
+    assert "pool: 0 one-seed piece(s)" in printed
+    assert "[FetchReach her] seed(s) 0, 1 collected in" in printed
+    assert benchmark.main([*args, "--dry-run"]) == 0
+    assert "pool: 2 one-seed piece(s)" in capsys.readouterr().out
+    (tmp_path / "runs.gone").rename(runs)
     bad = max(os.sched_getaffinity(0)) + 1
     assert benchmark.main([*args[:-1], str(bad)]) == 2
     assert f"--cores {bad}: this process may run on" in capsys.readouterr().err
